@@ -1,0 +1,53 @@
+# knitfem: `make demo` runs the hanging 7×7 jersey, `make test` the test suite.
+# Both set everything up first (Debian packages, .venv, editable install).
+
+PYTHON  := /usr/bin/python3
+VENV    := .venv
+VPY     := $(VENV)/bin/python
+APT     := python3-petsc4py python3-mpi4py python3-h5py python3-meshio \
+           python3-scipy python3-matplotlib python3-pytest python3-venv \
+           python3-setuptools python3-pip openmpi-bin
+export OMPI_ALLOW_RUN_AS_ROOT := 1
+export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
+export OMPI_MCA_rmaps_base_oversubscribe := 1
+MPIRUN  := mpirun -n 2
+PYTEST  := $(VPY) -m pytest -p no:cacheprovider -q
+OUT     ?= out/demo
+
+.PHONY: setup apt demo test test-serial test-parallel clean
+
+setup: apt $(VENV)/.installed
+
+# Installs only what dpkg does not already have (seconds when all is there).
+apt:
+	@missing=$$(for p in $(APT); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
+	  | grep -q "install ok installed" || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:" $$missing; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	    apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+# The venv sees Debian's numpy/petsc4py; a .pth file points at Debian's
+# real-scalar petsc4py when /usr/lib/petsc (from the -dev package) is absent.
+$(VENV)/.installed: setup.py
+	test -x $(VPY) || $(PYTHON) -m venv --system-site-packages $(VENV)
+	site=$$($(VPY) -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"); \
+	petsc=$$(ls -d /usr/lib/petscdir/petsc3.*/x86_64-linux-gnu-real/lib/python3/dist-packages | tail -n 1); \
+	echo "$$petsc" > "$$site/debian-petsc4py.pth"
+	$(VPY) -m pip install -q --no-deps --no-build-isolation -e .
+	touch $@
+
+demo: setup
+	$(VENV)/bin/knitfem run -knit_scene hanging -knit_rows 7 -knit_cols 7 -o $(OUT)
+
+test: setup test-serial test-parallel
+
+test-serial:
+	timeout 900 $(PYTEST) tests
+
+test-parallel:
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py
+
+clean:
+	rm -rf $(VENV) out *.egg-info

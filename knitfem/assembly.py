@@ -1,0 +1,140 @@
+"""PETSc matrices from numpy CSR arrays: layouts, patterns, one-call assembly.
+
+Yarn matrices are assembled without a Python loop over entries: the sparsity
+of a set of 4-point elements is found once (``ElementPattern``), every
+element entry gets its position in the CSR value array, and values are
+summed into place with ``np.bincount``. The 3-D forms follow from the scalar
+pattern: M = m ⊗ I₃ (``kron_identity``) and a full 3×3 block pattern for the
+tangent stiffness (``ElementPattern.blocks3``). Coordinates are interleaved,
+dof = 3 · control point + component, and PETSc block size is 3.
+"""
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = ["YarnLayout", "ElementPattern", "kron_identity", "create_aij",
+           "csr_rows"]
+
+
+class YarnLayout:
+    """Whole yarns per rank, in order; the rank's control points are contiguous.
+
+    Collective only in spirit: every rank computes the same split of
+    ``nyarn`` yarns of ``ncp_per_yarn`` control points over ``comm.size``.
+    """
+
+    def __init__(self, comm, nyarn, ncp_per_yarn):
+        self.comm, self.nyarn, self.ncp_per_yarn = comm, nyarn, ncp_per_yarn
+        counts = np.full(comm.size, nyarn // comm.size)
+        counts[: nyarn % comm.size] += 1
+        self.yarn_ranges = np.concatenate([[0], np.cumsum(counts)])
+        self.yarn_start = self.yarn_ranges[comm.rank]
+        self.yarn_end = self.yarn_ranges[comm.rank + 1]
+        self.ncp = nyarn * ncp_per_yarn
+        self.cp_start = self.yarn_start * ncp_per_yarn
+        self.cp_end = self.yarn_end * ncp_per_yarn
+        self.yarn_offset = np.arange(nyarn + 1) * ncp_per_yarn
+
+    @property
+    def local_yarns(self):
+        return range(self.yarn_start, self.yarn_end)
+
+    @property
+    def ncp_local(self):
+        return self.cp_end - self.cp_start
+
+    def owner_rank(self, yarn):
+        """Rank owning each yarn in ``yarn``."""
+        return np.searchsorted(self.yarn_ranges, yarn, side="right") - 1
+
+
+def csr_rows(indptr):
+    """Row index of every CSR entry."""
+    return np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+
+
+class ElementPattern:
+    """Scalar CSR pattern of 4-point elements and the slot of each entry.
+
+    Parameters
+    ----------
+    conn : (ne, 4) int
+        Global control-point indices of each element, all in the local rows
+        [row_start, row_start + nrows).
+    row_start, nrows : int
+    """
+
+    def __init__(self, conn, row_start, nrows):
+        self.conn, self.row_start, self.nrows = conn, row_start, nrows
+        ne = len(conn)
+        rows = np.broadcast_to(conn[:, :, None], (ne, 4, 4)) - row_start
+        cols = np.broadcast_to(conn[:, None, :], (ne, 4, 4))
+        ncols = int(conn.max()) + 1 if ne else 1
+        keys, slot = np.unique(rows.astype(np.int64) * ncols + cols,
+                               return_inverse=True)
+        r, self.indices = np.divmod(keys, ncols)
+        self.indptr = np.searchsorted(r, np.arange(nrows + 1)).astype(np.int64)
+        self.slot = slot.reshape(ne, 4, 4)
+
+    def assemble(self, elements):
+        """CSR values Σ_e over (ne, 4, 4) element matrices."""
+        return np.bincount(self.slot.ravel(), weights=elements.ravel(),
+                           minlength=len(self.indices))
+
+    def blocks3(self):
+        """Pattern of the interleaved 3-D matrix with full 3×3 blocks.
+
+        Returns (indptr3, indices3, slot3) with slot3 (ne, 12, 12) the value
+        position of element entry (3a + i, 3b + j).
+        """
+        length = np.diff(self.indptr)
+        k = np.arange(len(self.indices)) - np.repeat(self.indptr[:-1], length)
+        comp = np.arange(3)
+        # row 3I + i starts at 9·indptr[I] + 3·i·len(I); entry (I,J) is the k-th
+        # of row I, and column 3J + j sits 3k + j further on.
+        row_len3 = np.repeat(3 * length, 3)
+        indptr3 = np.concatenate([[0], np.cumsum(row_len3)]).astype(np.int64)
+        base = (9 * np.repeat(self.indptr[:-1], length))[:, None, None] \
+            + 3 * comp[None, :, None] * np.repeat(length, length)[:, None, None] \
+            + 3 * k[:, None, None] + comp[None, None, :]
+        indices3 = np.empty(indptr3[-1], dtype=np.int64)
+        indices3[base.ravel()] = np.broadcast_to(
+            3 * self.indices[:, None, None] + comp[None, None, :], base.shape).ravel()
+        slot3 = base[self.slot]                        # (ne, 4, 4, 3, 3)
+        slot3 = slot3.transpose(0, 1, 3, 2, 4).reshape(len(self.conn), 12, 12)
+        return indptr3, indices3, slot3
+
+
+def kron_identity(indptr, indices, values):
+    """CSR of A ⊗ I₃ from the CSR of a scalar A (rows 3I + i, columns 3J + i)."""
+    length = np.diff(indptr)
+    rows = csr_rows(indptr)
+    comp = np.arange(3)
+    indptr3 = np.concatenate([[0], np.cumsum(np.repeat(length, 3))]).astype(np.int64)
+    # row 3I + i holds the entries of row I, at columns 3J + i.
+    pos = np.repeat(indptr[:-1], length)
+    k = np.arange(len(indices)) - pos
+    slot = 3 * pos[:, None] + comp[None, :] * length[rows][:, None] + k[:, None]
+    indices3 = np.empty(3 * len(indices), dtype=np.int64)
+    values3 = np.empty(3 * len(indices))
+    indices3[slot] = 3 * indices[:, None] + comp
+    values3[slot] = values[:, None]
+    return indptr3, indices3, values3
+
+
+def create_aij(comm, rows, cols, csr, bsize=None):
+    """A PETSc AIJ matrix, exactly preallocated and filled from CSR in one call.
+
+    Collective. ``rows``/``cols`` are (local, global) sizes; ``csr`` =
+    (indptr, global column indices, values) of the local rows.
+    """
+    indptr, indices, values = csr
+    A = PETSc.Mat().createAIJ(
+        size=(rows, cols), bsize=bsize,
+        csr=(np.asarray(indptr, dtype=PETSc.IntType),
+             np.asarray(indices, dtype=PETSc.IntType),
+             np.asarray(values, dtype=PETSc.ScalarType)),
+        comm=comm)
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+    A.assemble()
+    return A

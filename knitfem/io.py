@@ -1,0 +1,152 @@
+"""Output: yarn centrelines for ParaView (meshio) and PNG pictures (matplotlib).
+
+Centrelines are the splines sampled ``SAMPLES`` times a segment, written as
+"line" cells with point data ``radius`` (for ParaView's Tube filter, "Vary
+radius: By Scalar") and ``yarn``; time series go to XDMF + HDF5.
+"""
+
+import os
+
+import matplotlib
+import meshio
+import numpy as np
+
+from . import bspline
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+
+__all__ = ["centrelines", "write_centrelines", "CentrelineSeries", "draw"]
+
+SAMPLES = 6
+
+
+def centrelines(P, samples=SAMPLES):
+    """Sampled centrelines of yarns P (nyarn, n, 3): points (nyarn, m, 3)."""
+    P = np.asarray(P)
+    nseg = P.shape[1] - 3
+    s = np.linspace(0, nseg, nseg * samples + 1)
+    k, u = bspline.locate(s, nseg)
+    B = bspline.basis(u)
+    return np.einsum("ma,fmai->fmi", B, P[:, k[:, None] + np.arange(4)])
+
+
+def _mesh_arrays(P, radius, point_data=None):
+    pts = centrelines(P)
+    nyarn, m = pts.shape[:2]
+    first = np.arange(nyarn)[:, None] * m + np.arange(m - 1)
+    cells = np.stack([first.ravel(), first.ravel() + 1], axis=-1)
+    data = {"radius": np.full(nyarn * m, float(radius)),
+            "yarn": np.repeat(np.arange(nyarn, dtype=float), m)}
+    for name, values in (point_data or {}).items():
+        data[name] = np.asarray(values).reshape(nyarn * m, -1).squeeze()
+    return pts.reshape(-1, 3), [("line", cells)], data
+
+
+def write_centrelines(path, P, radius, point_data=None):
+    """One geometry file (.vtu, .xdmf, … as meshio infers from the name)."""
+    pts, cells, data = _mesh_arrays(P, radius, point_data)
+    meshio.write(path, meshio.Mesh(pts, cells, point_data=data))
+
+
+class CentrelineSeries:
+    """XDMF + HDF5 time series of moving yarn centrelines (call on rank 0).
+
+    Every step stores its own geometry and point data in ``<stem>.h5`` and
+    the small XDMF index is rewritten, so what was written so far stays
+    readable in ParaView (Xdmf3 reader) if a run stops early.
+    """
+
+    def __init__(self, path, P0, radius):
+        import h5py
+
+        self.path, self.radius, self.steps = path, radius, []
+        self.h5name = os.path.splitext(os.path.basename(path))[0] + ".h5"
+        self.h5 = h5py.File(os.path.join(os.path.dirname(path) or ".",
+                                         self.h5name), "w")
+        pts, cells, _ = _mesh_arrays(P0, radius)
+        self.npts, self.ncells = len(pts), len(cells[0][1])
+        self.h5["topology"] = cells[0][1]
+
+    def write(self, t, P, point_data=None):
+        pts, _, data = _mesh_arrays(P, self.radius, point_data)
+        n = len(self.steps)
+        self.h5[f"step{n}/geometry"] = pts
+        for name, values in data.items():
+            self.h5[f"step{n}/{name}"] = values
+        self.h5.flush()
+        self.steps.append((float(t), {k: np.shape(v) for k, v in data.items()}))
+        self._write_xdmf()
+
+    def _item(self, dataset, shape):
+        dims = " ".join(map(str, shape))
+        return (f'<DataItem Dimensions="{dims}" Format="HDF" NumberType="Float" '
+                f'Precision="8">{self.h5name}:/{dataset}</DataItem>')
+
+    def _write_xdmf(self):
+        grids = []
+        for n, (t, shapes) in enumerate(self.steps):
+            attrs = "".join(
+                f'<Attribute Name="{name}" AttributeType='
+                f'"{"Scalar" if len(shape) == 1 else "Vector"}" Center="Node">'
+                f'{self._item(f"step{n}/{name}", shape)}</Attribute>'
+                for name, shape in shapes.items())
+            grids.append(
+                f'<Grid Name="step{n}"><Time Value="{t!r}"/>'
+                f'<Topology TopologyType="Polyline" NodesPerElement="2" '
+                f'NumberOfElements="{self.ncells}"><DataItem Dimensions='
+                f'"{self.ncells} 2" Format="HDF" NumberType="Int" Precision="8">'
+                f'{self.h5name}:/topology</DataItem></Topology>'
+                f'<Geometry GeometryType="XYZ">'
+                f'{self._item(f"step{n}/geometry", (self.npts, 3))}</Geometry>'
+                f'{attrs}</Grid>')
+        with open(self.path, "w") as f:
+            f.write('<?xml version="1.0"?>\n<Xdmf Version="3.0"><Domain>'
+                    '<Grid Name="yarns" GridType="Collection" '
+                    'CollectionType="Temporal">\n' + "\n".join(grids)
+                    + "\n</Grid></Domain></Xdmf>\n")
+
+    def close(self):
+        self.h5.close()
+
+
+def draw(path, P, radius, title="", view="front", extent=None):
+    """A PNG of the fabric, yarns as tubes drawn back to front.
+
+    view "front" looks along −z (x right, y up); "side" along x (z right).
+    Segments are sorted by depth (painter's algorithm) and shaded by it.
+    """
+    pts = centrelines(P, samples=8)
+    nyarn, m = pts.shape[:2]
+    seg = np.stack([pts[:, :-1], pts[:, 1:]], axis=2).reshape(-1, 2, 3)
+    yarn = np.repeat(np.arange(nyarn), m - 1)
+    h, v, depth = (0, 1, 2) if view == "front" else (2, 1, 0)
+    z = seg[:, :, depth].mean(axis=1)
+    order = np.argsort(z)
+    lo, hi = (seg.reshape(-1, 3).min(0), seg.reshape(-1, 3).max(0)) \
+        if extent is None else extent
+    pad = 2 * radius
+    width = hi[h] - lo[h] + 2 * pad
+    height = hi[v] - lo[v] + 2 * pad
+    fig_w = 8.0
+    fig_h = max(2.0, min(12.0, fig_w * height / width))
+    fig, ax = plt.subplots(figsize=(fig_w, fig_h), dpi=110)
+    ax.set_xlim(lo[h] - pad, hi[h] + pad)
+    ax.set_ylim(lo[v] - pad, hi[v] + pad)
+    ax.set_aspect("equal")
+    fig.tight_layout()
+    scale = ax.transData.transform([(2 * radius, 0)])[0, 0] \
+        - ax.transData.transform([(0, 0)])[0, 0]
+    lw = max(0.5, scale * 72 / fig.dpi)
+    shade = 0.55 + 0.45 * (z - z.min()) / (np.ptp(z) + 1e-300)
+    colours = plt.cm.tab10(yarn % 10)[:, :3] * shade[:, None]
+    for width_, c in ((lw * 1.15, np.zeros_like(colours)), (lw, colours)):
+        ax.add_collection(LineCollection(seg[order][:, :, [h, v]], linewidths=width_,
+                                         colors=c[order], capstyle="round"))
+    ax.set_title(title)
+    ax.set_xlabel("xzy"[h] + " [m]")
+    ax.set_ylabel("y [m]")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,168 @@
+"""The full yarn-level model assembled in PETSc (generalised coordinates ε).
+
+    M ε̈ = Q(ε, ε̇) + Cᵀλ,   C ε = d,
+
+M = m ⊗ I₃ the constant mass, Q = −∂E/∂ε + Q_g − c_d M ε̇ (elastic, gravity,
+mass-proportional damping), C = c ⊗ I₃ the constant contact and world
+constraints. Every rank owns whole yarns, so element kernels need no ghost
+values; only C couples ranks (contacts between neighbouring courses).
+
+The model is a "mechanical system" for ``solvers/``: mass M (and its scalar
+factor m), constraints C, c, d, and the callbacks ``forces`` and
+``stiffness``. The reduced model in ``reduced.py`` offers the same interface.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from . import constraints as cons
+from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from .yarn import YarnElements
+
+__all__ = ["Material", "FullModel"]
+
+EV_FORCES = PETSc.Log.Event("knitForces")
+EV_TANGENT = PETSc.Log.Event("knitTangent")
+EV_ASSEMBLY = PETSc.Log.Event("knitAssembly")
+
+
+@dataclass
+class Material:
+    """Yarn data in SI units (see README for the defaults and their source).
+
+    rho: linear density (kg/m); EA: axial stiffness (N); EI: bending
+    stiffness (N m²); gravity: g (m/s², along −y); damping: c_d (1/s),
+    Q_d = −c_d M ε̇.
+    """
+
+    rho: float = 3.0e-5
+    EA: float = 20.0
+    EI: float = 2.0e-7
+    gravity: float = 9.81
+    damping: float = 0.0
+
+
+class FullModel:
+    """Full model of a ``Fabric``: yarn elements, M, C assembled in PETSc.
+
+    Collective on ``comm``.
+    """
+
+    kind = "full"
+
+    def __init__(self, comm, fabric, material, nq=4):
+        self.comm, self.fabric, self.material = comm, fabric, material
+        self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
+        nseg = fabric.ncp - 3
+        with EV_ASSEMBLY:
+            yarn_first = lay.yarn_offset[lay.yarn_start:lay.yarn_end]
+            self.conn = (yarn_first[:, None, None] + np.arange(nseg)[None, :, None]
+                         + np.arange(4)).reshape(-1, 4)
+            Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
+            self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
+                                         material.rho, material.EA, material.EI,
+                                         nq=nq)
+            self.pattern = ElementPattern(self.conn, lay.cp_start, lay.ncp_local)
+            n, N = lay.ncp_local, lay.ncp
+            m_csr = (self.pattern.indptr, self.pattern.indices,
+                     self.pattern.assemble(self.elements.mass_elements()))
+            self.m = create_aij(comm, (n, N), (n, N), m_csr)
+            self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
+                                kron_identity(*m_csr), bsize=3)
+            self._build_constraints()
+            self.indptr3, self.indices3, self.slot3 = self.pattern.blocks3()
+            self.K = None
+            self.Qg = self.M.createVecLeft()
+            G = self.M.createVecRight()
+            G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
+            self.M.mult(G, self.Qg)
+            G.destroy()
+        for A, name in ((self.m, "full_m_"), (self.M, "full_M_"),
+                        (self.C, "full_C_")):
+            A.setOptionsPrefix(name)
+
+    def _build_constraints(self):
+        lay, comm = self.layout, self.comm
+        allc = cons.build(self.fabric)
+        lo, hi = np.searchsorted(allc.owner, [lay.yarn_start, lay.yarn_end])
+        self.ncon, self.con_start, self.ncon_local = allc.count, lo, hi - lo
+        self.constraint_kind = allc.kind
+        ptr = allc.indptr[lo:hi + 1]
+        csr = (ptr - ptr[0], allc.indices[ptr[0]:ptr[-1]], allc.values[ptr[0]:ptr[-1]])
+        nl, N = lay.ncp_local, lay.ncp
+        k, K = self.ncon_local, self.ncon
+        self.c = create_aij(comm, (k, K), (nl, N), csr)
+        self.C = create_aij(comm, (3 * k, 3 * K), (3 * nl, 3 * N),
+                            kron_identity(*csr), bsize=3)
+        self.d = self.C.createVecLeft()
+        self.d.getArray()[:] = allc.rhs[lo:hi].ravel()
+
+    # -- state ---------------------------------------------------------------
+    def rest_state(self):
+        """ε at rest (Vec, block size 3)."""
+        x = self.M.createVecRight()
+        lay = self.layout
+        x.getArray()[:] = self.fabric.X[lay.yarn_start:lay.yarn_end].ravel()
+        return x
+
+    def yarn_points(self, x):
+        """Local control points (ncp_local, 3) of the state x (a view)."""
+        return x.getArray(readonly=True).reshape(-1, 3)
+
+    def full_state(self, x, out=None):
+        """ε of the state x: the identity for the full model."""
+        if out is None:
+            return x.copy()
+        x.copy(out)
+        return out
+
+    def gather_points(self, x):
+        """All control points (nyarn, ncp, 3) on rank 0 (None elsewhere)."""
+        local = x.getArray(readonly=True)
+        parts = self.comm.tompi4py().gather(local, root=0)
+        if self.comm.rank:
+            return None
+        return np.concatenate(parts).reshape(self.fabric.nyarn, self.fabric.ncp, 3)
+
+    # -- mechanics -----------------------------------------------------------
+    def elastic_energy(self, x):
+        """E(ε) = E_s + E_b (collective)."""
+        e = self.elements.energy(self.yarn_points(x))
+        return self.comm.tompi4py().allreduce(e)
+
+    def forces(self, x, v, Q):
+        """Q = −∂E/∂ε + Q_g − c_d M ε̇ (collective)."""
+        with EV_FORCES:
+            g = self.elements.gradient(self.yarn_points(x))
+            self.M.mult(v, Q)
+            Q.scale(-self.material.damping)
+            Q.axpy(1.0, self.Qg)
+            q = Q.getArray()
+            q -= g.ravel()
+
+    def stiffness(self, x):
+        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused)."""
+        with EV_TANGENT:
+            H = self.elements.element_hessian(self.yarn_points(x))
+            values = np.bincount(self.slot3.ravel(), weights=H.ravel(),
+                                 minlength=len(self.indices3))
+            if self.K is None:
+                n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
+                self.K = create_aij(self.comm, (n, N), (n, N),
+                                    (self.indptr3, self.indices3 + 0, values), bsize=3)
+                self.K.setOptionsPrefix("full_K_")
+            else:
+                self.K.setValuesCSR(self.indptr3, self.indices3, values)
+                self.K.assemble()
+            return self.K
+
+    def strain(self, x):
+        """Green–Lagrange axial strain at every local quadrature point."""
+        return self.elements.strain(self.yarn_points(x))
+
+    def destroy(self):
+        for A in (self.m, self.M, self.c, self.C, self.d, self.Qg, self.K):
+            if A is not None:
+                A.destroy()

@@ -1,0 +1,106 @@
+"""Our -knit_ options: each declared once with a default and a help line.
+
+PETSc's own getters register no help text and raise tracebacks on a value
+that does not parse; ``KnitOptions`` reads every value as a string, parses
+it, and turns bad input into a one-line ``KnitError`` naming the option and
+what it accepts. ``-help`` prints the declared lines after PETSc's own.
+"""
+
+from petsc4py import PETSc
+
+__all__ = ["KnitError", "KnitOptions"]
+
+
+class KnitError(Exception):
+    """Bad input: the message is one line saying what is wrong and what to do."""
+
+
+class KnitOptions:
+    """Our -knit_ options, each with a default and a help line."""
+
+    def __init__(self, prefix="knit_"):
+        self.db, self.prefix, self.lines = PETSc.Options(prefix), prefix, []
+
+    def _raw(self, name, default, text):
+        self.lines.append(f"  -{self.prefix}{name} <{default}>: {text}")
+        if not self.db.hasName(name):
+            return None
+        return self.db.getString(name, "")
+
+    def _fail(self, name, value, wants):
+        raise KnitError(f"-{self.prefix}{name} {value!r}: expected {wants}")
+
+    def getInt(self, name, default, text, minimum=None):
+        """An integer, at least ``minimum`` when given."""
+        raw = self._raw(name, default, text)
+        if raw is None:
+            return default
+        try:
+            value = int(raw)
+        except ValueError:
+            self._fail(name, raw, "an integer")
+        if minimum is not None and value < minimum:
+            self._fail(name, raw, f"an integer >= {minimum}")
+        return value
+
+    def getReal(self, name, default, text, positive=False, nonnegative=False):
+        """A real number, optionally > 0 or >= 0."""
+        raw = self._raw(name, default, text)
+        if raw is None:
+            return default
+        try:
+            value = float(raw)
+        except ValueError:
+            self._fail(name, raw, "a real number")
+        if value != value or abs(value) == float("inf"):
+            self._fail(name, raw, "a finite real number")
+        if positive and value <= 0:
+            self._fail(name, raw, "a positive real number")
+        if nonnegative and value < 0:
+            self._fail(name, raw, "a non-negative real number")
+        return value
+
+    def getInts(self, name, default, text, count, minimum=None):
+        """``count`` comma-separated integers, e.g. ``-knit_lod 5,5``."""
+        raw = self._raw(name, ",".join(map(str, default)), text)
+        if raw is None:
+            return tuple(default)
+        wants = f"{count} comma-separated integers" + (
+            f" >= {minimum}" if minimum is not None else "")
+        try:
+            value = tuple(int(v) for v in raw.split(","))
+        except ValueError:
+            self._fail(name, raw, wants)
+        if len(value) != count or (minimum is not None and min(value) < minimum):
+            self._fail(name, raw, wants)
+        return value
+
+    def getChoice(self, name, default, choices, text):
+        """One of ``choices``."""
+        raw = self._raw(name, default, f"{text} ({'|'.join(choices)})")
+        if raw is None:
+            return default
+        if raw not in choices:
+            self._fail(name, raw, "one of " + ", ".join(choices))
+        return raw
+
+    def getBool(self, name, default, text):
+        """A flag: present alone means true; also accepts true/false, 1/0."""
+        raw = self._raw(name, default, text)
+        if raw is None:
+            return default
+        table = {"": True, "1": True, "true": True, "yes": True,
+                 "0": False, "false": False, "no": False}
+        if raw.lower() not in table:
+            self._fail(name, raw, "true or false")
+        return table[raw.lower()]
+
+    def getString(self, name, default, text):
+        """Any string (a file name, say)."""
+        raw = self._raw(name, default, text)
+        return default if raw is None else raw
+
+    def printHelp(self, title):
+        """Under -help, print the declared options (collective)."""
+        if PETSc.Options().hasName("help"):
+            PETSc.Sys.Print(f"{title} options:\n" + "\n".join(self.lines))

@@ -1,0 +1,178 @@
+"""Jersey (plain-knit) pattern: yarn control points and contact parameters.
+
+A fabric of r rows (courses) × nc columns (stitches) is r yarns, one per
+course. In units where a stitch is 2π wide the centreline of course f is the
+plain-knit curve
+
+    γ_f(t) = (t + a sin 2t,  h cos t + f w,  d cos 2t),   t ∈ [−π, 2π nc − π],
+
+x along the courses, y along the wales (up), z through the thickness. The
+loop heads sit at t = 2πj, j = 0 … nc − 1; a yarn starts and ends at a
+sinker loop (t = −π mod 2π).
+
+Each yarn is a uniform cubic B-spline with 8 segments a stitch, so
+n_f = 8 nc + 3 control points. Control point i sits at t_i = −π + (i − 1)Δ,
+Δ = 2π/8; each harmonic of γ is divided by the junction symbol
+(4 + 2 cos ωΔ)/6 so that the spline interpolates γ at every segment junction.
+Physical lengths are the unit lengths times ``radius / r``.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import bspline
+
+__all__ = ["LoopShape", "Jersey", "min_yarn_distance"]
+
+SEGMENTS_PER_STITCH = 8
+DT = 2 * np.pi / SEGMENTS_PER_STITCH
+T0 = -np.pi
+
+
+@dataclass(frozen=True)
+class LoopShape:
+    """Plain-knit loop in units where a stitch is 2π wide.
+
+    a: loop bulge, h: loop half height, d: loop depth (z), w: course spacing,
+    r: yarn radius. The defaults keep different yarns ≥ 2r apart at rest.
+    """
+
+    a: float = 1.5
+    h: float = 4.0
+    d: float = 1.2
+    w: float = 4.5
+    r: float = 0.75
+
+
+class Jersey:
+    """Geometry of an r × nc jersey: control points, contacts, fixed points.
+
+    Parameters
+    ----------
+    rows, cols : int
+        Courses r (yarns) and stitches a course nc.
+    radius : float
+        Yarn radius in metres; sets the scale ``radius / shape.r``.
+    shape : LoopShape
+    """
+
+    def __init__(self, rows, cols, radius=5e-4, shape=LoopShape()):
+        self.rows, self.cols = int(rows), int(cols)
+        self.radius, self.shape = float(radius), shape
+        self.scale = self.radius / shape.r
+        self.ncp = SEGMENTS_PER_STITCH * self.cols + 3
+        self.nseg = self.ncp - 3
+
+    def parameter(self, t):
+        """Spline parameter s of the curve parameter t."""
+        return (np.asarray(t) - T0) / DT
+
+    def control_points(self, f):
+        """Rest control points (n_f, 3) of yarn f, interpolating γ_f at junctions."""
+        s = self.shape
+        t = T0 + (np.arange(self.ncp) - 1) * DT
+        sym1 = bspline.junction_symbol(DT)
+        sym2 = bspline.junction_symbol(2 * DT)
+        P = np.stack(
+            [t + s.a * np.sin(2 * t) / sym2,
+             s.h * np.cos(t) / sym1 + f * s.w,
+             s.d * np.cos(2 * t) / sym2],
+            axis=-1,
+        )
+        return self.scale * P
+
+    def all_control_points(self):
+        """Rest control points of all yarns, (r · n_f, 3), yarn after yarn."""
+        return np.concatenate([self.control_points(f) for f in range(self.rows)])
+
+    def centreline(self, t, f):
+        """The closed-form jersey curve γ_f(t) in metres, (len(t), 3)."""
+        s, t = self.shape, np.asarray(t, dtype=float)
+        g = np.stack([t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w,
+                      s.d * np.cos(2 * t)], axis=-1)
+        return self.scale * g
+
+    def contacts(self):
+        """Interlock contacts between courses k and k + 1.
+
+        Two a stitch: the head of course k (t = 2πj) passes the two legs of
+        course k + 1. Each contact is the closest approach of the two splines,
+        refined by Newton from t_a = 2πj ± 0.99, t_b = 2πj ± 2.16.
+
+        Returns
+        -------
+        yarn_a : (nct,) int
+            Course k; the contact is P_k(s_a) − P_{k+1}(s_b) = d_ab.
+        s_a, s_b : (nct,) float
+        """
+        if self.rows < 2:
+            return np.zeros(0, int), np.zeros(0), np.zeros(0)
+        j = np.arange(self.cols)
+        ta = (2 * np.pi * j[:, None] + np.array([-0.99, 0.99])).ravel()
+        tb = (2 * np.pi * j[:, None] + np.array([-2.16, 2.16])).ravel()
+        Pa, Pb = self.control_points(0), self.control_points(1)
+        sa, sb = closest_approach(Pa, Pb, self.parameter(ta), self.parameter(tb))
+        k = np.repeat(np.arange(self.rows - 1), sa.size)
+        return k, np.tile(sa, self.rows - 1), np.tile(sb, self.rows - 1)
+
+    def heads(self, f):
+        """Spline parameters of the nc loop heads of yarn f (t = 2πj)."""
+        return self.parameter(2 * np.pi * np.arange(self.cols))
+
+
+def closest_approach(Pa, Pb, sa, sb, iterations=30):
+    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised."""
+    na, nb = len(Pa) - 3, len(Pb) - 3
+    for _ in range(iterations):
+        D = bspline.curve_points(Pa, sa) - bspline.curve_points(Pb, sb)
+        A1, A2 = bspline.curve_points(Pa, sa, 1), bspline.curve_points(Pa, sa, 2)
+        B1, B2 = bspline.curve_points(Pb, sb, 1), bspline.curve_points(Pb, sb, 2)
+        g = np.stack([np.sum(D * A1, -1), -np.sum(D * B1, -1)], -1)
+        H = np.empty(g.shape + (2,))
+        H[:, 0, 0] = np.sum(A1 * A1 + D * A2, -1)
+        H[:, 1, 1] = np.sum(B1 * B1 - D * B2, -1)
+        H[:, 0, 1] = H[:, 1, 0] = -np.sum(A1 * B1, -1)
+        step = np.linalg.solve(H, g[..., None])[..., 0]
+        sa = np.clip(sa - step[:, 0], 0, na)
+        sb = np.clip(sb - step[:, 1], 0, nb)
+        if np.abs(step).max() < 1e-13:
+            break
+    return sa, sb
+
+
+def min_yarn_distance(yarns, samples_per_segment=8):
+    """Smallest centreline distance between two different yarns.
+
+    yarns is a list of control-point arrays (n_f, 3); each spline is sampled
+    ``samples_per_segment`` times a segment, and the samples of every later
+    yarn are matched to a k-d tree of yarn f. Returns (distance, f, g).
+    """
+    pts = []
+    for P in yarns:
+        s = np.linspace(0, len(P) - 3, (len(P) - 3) * samples_per_segment + 1)
+        pts.append(bspline.curve_points(P, s))
+    best = (np.inf, -1, -1)
+    for f in range(len(pts) - 1):
+        later = np.concatenate(pts[f + 1:])
+        owner = np.repeat(np.arange(f + 1, len(pts)), [len(p) for p in pts[f + 1:]])
+        d, _ = cKDTree(pts[f]).query(later, k=1)
+        i = np.argmin(d)
+        if d[i] < best[0]:
+            best = (d[i], f, owner[i])
+    return best
+
+
+def jersey_fabric(jersey, hold_top=False):
+    """The ``Fabric`` of a jersey; ``hold_top`` fixes the top course's heads."""
+    from .fabric import Fabric
+
+    X = np.stack([jersey.control_points(f) for f in range(jersey.rows)])
+    k, sa, sb = jersey.contacts()
+    fab = Fabric(X, jersey.radius, contacts=(k, sa, k + 1, sb))
+    if hold_top:
+        top = jersey.rows - 1
+        s = jersey.heads(top)
+        fab.fixed = (np.full(len(s), top), s)
+    return fab

@@ -1,0 +1,315 @@
+"""Yarn elements: mass, stretching and bending of uniform cubic B-spline yarns.
+
+A yarn is a uniform cubic B-spline whose control points p are the generalised
+coordinates. Element (segment) e uses the control points conn[e] = (k, …, k+3)
+and, at local parameter u,
+
+    x(u) = Σ_a b_a(u) p_{conn[e, a]},   x' = Σ_a b_a'(u) p_a,   x'' = Σ_a b_a''(u) p_a,
+
+derivatives being taken with respect to the spline parameter (one unit per
+segment). X is the rest curve. With Gauss weights w_q on [0, 1] and the rest
+line element W = w_q |X'|, the energies are
+
+    E_s = ½ Σ_{e,q} W EA e²,          e = (|x'|² − |X'|²) / (2|X'|²),
+    E_b = ½ Σ_{e,q} W EI (κ − κ₀)²,   κ = |x' × x''| / |x'|³,
+
+κ₀ the curvature of X. Both depend on x only through |x'|, |x''| and x'·x'',
+so they are invariant under rigid motions.
+
+One chain rule serves both. At each (e, q) an energy density ψ(ε) depends on a
+scalar measure ε of y = (x', x'') ∈ ℝ^{2×3}, and y = D p is linear in the
+element's control points, D_q = [b'(u_q); b''(u_q)] (2, 4). With f₁ = W ψ'(ε),
+f₂ = W ψ''(ε),
+
+    ∂E/∂p_{ai}        = Σ_q Σ_r D_{qra} f₁ ∂ε/∂y_{ri},
+    ∂²E/∂p_{ai}∂p_{bj} = Σ_q Σ_{rs} D_{qra} (f₂ ∂ε/∂y_{ri} ∂ε/∂y_{sj}
+                                             + f₁ ∂²ε/∂y_{ri}∂y_{sj}) D_{qsb}.
+
+Stretching uses ε = e, ψ = ½ EA e². Bending uses ε = c = κ² (smooth in y even
+where the yarn is straight) and ψ = ½ EI (√c − κ₀)², so f₁ = ½ W EI (1 − κ₀/√c),
+f₂ = ¼ W EI κ₀ c^{−3/2}: where κ₀ = 0 the density is ½ EI c, a polynomial
+over |x'|⁶, and its Hessian is finite at straight configurations.
+
+Element DOFs are interleaved, local index 3a + i (control point a, component
+i), and the assembled gradient is laid out like the control points (ncp, 3).
+Everything is vectorised over elements × quadrature points; no PETSc here.
+"""
+
+import numpy as np
+
+from . import bspline
+
+__all__ = ["YarnElements", "chain_rule", "stretch_terms", "bend_terms"]
+
+
+def chain_rule(D, f1, f2, g, H=None):
+    """Element gradient and Hessian of Σ_q ψ(ε) from point derivatives in y.
+
+        G_{e,ai} = Σ_{q,r} D_{qra} f₁ g_{eqri},
+        K_{e,ai,bj} = Σ_{q,r,s} D_{qra} (f₂ g_{eqri} g_{eqsj} + f₁ H_{eqrisj}) D_{qsb}.
+
+    Parameters
+    ----------
+    D : (nq, 2, 4)
+        Maps the element's control points to y = (x', x''): y_{qri} = D_{qra} p_{ai}.
+    f1, f2 : (ne, nq)
+        W ψ'(ε) and W ψ''(ε), W = w_q |X'| the rest line element.
+    g : (ne, nq, 2, 3)
+        ∂ε/∂y.
+    H : (ne, nq, 2, 3, 2, 3), optional
+        ∂²ε/∂y²; without it no Hessian is formed.
+
+    Returns
+    -------
+    G : (ne, 12)
+        ∂E/∂p, local DOF 3a + i.
+    K : (ne, 12, 12) or None
+        ∂²E/∂p∂p.
+    """
+    ne = g.shape[0]
+    G = np.einsum("qra,eqri->eai", D, f1[..., None, None] * g).reshape(ne, 12)
+    if H is None:
+        return G, None
+    Hy = (f1[..., None, None, None, None] * H
+          + f2[..., None, None, None, None] * np.einsum("eqri,eqsj->eqrisj", g, g))
+    T = np.einsum("eqrisj,qsb->eqribj", Hy, D)
+    K = np.einsum("qra,eqribj->eaibj", D, T).reshape(ne, 12, 12)
+    return G, K
+
+
+def stretch_terms(y, Xp2, W, EA, hessian=True):
+    """Stretching: ε = e = (|x'|² − |X'|²)/(2|X'|²), ψ = ½ EA e².
+
+        ∂e/∂x' = x'/|X'|²,   ∂²e/∂x'² = I/|X'|²,   ∂e/∂x'' = 0.
+
+    Parameters
+    ----------
+    y : (ne, nq, 2, 3)
+        (x', x'') at every quadrature point.
+    Xp2, W : (ne, nq)
+        |X'|² and the rest line element w_q |X'|.
+    EA : float
+
+    Returns
+    -------
+    f1, f2, g, H
+        Arguments of ``chain_rule`` (H is None unless ``hessian``).
+    """
+    u = y[:, :, 0]
+    e = 0.5 * (np.einsum("eqi,eqi->eq", u, u) - Xp2) / Xp2
+    g = np.zeros_like(y)
+    g[:, :, 0] = u / Xp2[..., None]
+    H = None
+    if hessian:
+        H = np.zeros(y.shape + (2, 3))
+        H[:, :, 0, :, 0, :] = np.eye(3) / Xp2[..., None, None]
+    return EA * W * e, EA * W, g, H
+
+
+def bend_terms(y, kappa0, W, EI, delta, hessian=True):
+    """Bending: ε = c = κ² = A/B³, ψ = ½ EI (√c − κ₀)², with u = x', v = x'',
+
+        A = |u × v|² = |u|²|v|² − (u·v)²,      B = |u|²,
+        ∂A/∂u = 2 v × (u × v) = 2|v|²u − 2(u·v)v,
+        ∂A/∂v = 2 (u × v) × u = 2|u|²v − 2(u·v)u,
+        ∂²A/∂u² = 2|v|²I − 2vvᵀ,   ∂²A/∂v² = 2|u|²I − 2uuᵀ,
+        ∂²A/∂u∂v = 4uvᵀ − 2vuᵀ − 2(u·v)I,
+        B' = (2u, 0),   B'' = diag(2I, 0),
+        c'  = A'B⁻³ − 3AB⁻⁴B',
+        c'' = A''B⁻³ − 3B⁻⁴(A'B'ᵀ + B'A'ᵀ) + 12AB⁻⁵B'B'ᵀ − 3AB⁻⁴B'',
+        ψ'(c) = ½ EI (1 − κ₀/√c),   ψ''(c) = ¼ EI κ₀ c^{−3/2}.
+
+    In ψ' and ψ'' only, √c is regularised as s = √(c + δ²) so that nothing is
+    divided by zero where κ₀ > 0 and the yarn is straight (the energy itself
+    has a cone point there, |κ| − κ₀). δ is far below any curvature that
+    matters, so s = √c to rounding elsewhere; where κ₀ = 0, ψ' = ½ EI and
+    ψ'' = 0 exactly.
+
+    Parameters
+    ----------
+    y : (ne, nq, 2, 3)
+        (x', x'') at every quadrature point.
+    kappa0, W : (ne, nq)
+        Rest curvature and rest line element w_q |X'|.
+    EI, delta : float
+
+    Returns
+    -------
+    f1, f2, g, H
+        Arguments of ``chain_rule`` (H is None unless ``hessian``).
+    """
+    u, v = y[:, :, 0], y[:, :, 1]
+    w = np.cross(u, v)
+    A = np.einsum("eqi,eqi->eq", w, w)
+    B = np.einsum("eqi,eqi->eq", u, u)
+    c = A / B**3
+    s = np.sqrt(c + delta**2)
+    f1 = 0.5 * EI * W * (1.0 - kappa0 / s)
+    f2 = 0.25 * EI * W * kappa0 / s**3
+
+    dA = np.stack([2.0 * np.cross(v, w), 2.0 * np.cross(w, u)], axis=2)
+    g = dA / B[..., None, None] ** 3                  # c' = A'B⁻³ − 3AB⁻⁴B'
+    g[:, :, 0] -= (6.0 * A / B**4)[..., None] * u
+    if not hessian:
+        return f1, f2, g, None
+
+    # c'' = A''/B³ plus the B terms, which live in the u rows and columns only
+    eye = np.eye(3)
+    vv = np.einsum("eqi,eqi->eq", v, v)[..., None, None]
+    uv = np.einsum("eqi,eqi->eq", u, v)[..., None, None]
+    Huv = (4.0 * np.einsum("eqi,eqj->eqij", u, v)
+           - 2.0 * np.einsum("eqi,eqj->eqij", v, u) - 2.0 * uv * eye)
+    H = np.empty(y.shape + (2, 3))
+    H[:, :, 0, :, 0, :] = 2.0 * vv * eye - 2.0 * np.einsum("eqi,eqj->eqij", v, v)
+    H[:, :, 1, :, 1, :] = (2.0 * B[..., None, None] * eye
+                           - 2.0 * np.einsum("eqi,eqj->eqij", u, u))
+    H[:, :, 0, :, 1, :] = Huv
+    H[:, :, 1, :, 0, :] = Huv.transpose(0, 1, 3, 2)
+    H *= (1.0 / B**3)[..., None, None, None, None]
+    # −3B⁻⁴(A'B'ᵀ + B'A'ᵀ) with B' = (2u, 0)
+    t = np.einsum("eq,eqri,eqj->eqrij", 6.0 / B**4, dA, u)
+    H[:, :, :, :, 0, :] -= t
+    H[:, :, 0, :, :, :] -= t.transpose(0, 1, 4, 2, 3)
+    # 12AB⁻⁵B'B'ᵀ − 3AB⁻⁴B'' with B'' = diag(2I, 0)
+    H[:, :, 0, :, 0, :] += (np.einsum("eq,eqi,eqj->eqij", 48.0 * A / B**5, u, u)
+                            - (6.0 * A / B**4)[..., None, None] * eye)
+    return f1, f2, g, H
+
+
+class YarnElements:
+    """Cubic B-spline yarn elements: constant mass, stretching and bending.
+
+    Parameters
+    ----------
+    X : (ncp, 3)
+        Rest control points (several yarns may be concatenated).
+    conn : (ne, 4) int
+        Control points of every element, (k, k+1, k+2, k+3) within one yarn.
+    rho : float
+        Linear density ρ (kg/m).
+    EA : float
+        Axial stiffness (N).
+    EI : float
+        Bending stiffness (N m²).
+    nq : int
+        Gauss points per element (4 integrates the mass exactly).
+
+    Attributes
+    ----------
+    B, dB, ddB : (nq, 4)
+        Basis functions and their first and second derivatives at the points.
+    weights : (nq,)
+        Gauss weights on [0, 1].
+    Xp : (ne, nq, 3)
+        Rest tangent X'.
+    Xp2, jac : (ne, nq)
+        |X'|² and |X'|.
+    W : (ne, nq)
+        Rest line element w_q |X'|.
+    kappa0 : (ne, nq)
+        Rest curvature κ₀ = |X' × X''| / |X'|³.
+    delta : float
+        Curvature regularisation of ``bend_terms``: 10⁻¹² / mean |X'|.
+    """
+
+    def __init__(self, X, conn, rho, EA, EI, nq=4):
+        self.X = np.asarray(X, dtype=float)
+        self.conn = np.asarray(conn, dtype=np.int64).reshape(-1, 4)
+        self.ncp, self.ne, self.nq = len(self.X), len(self.conn), nq
+        self.rho, self.EA, self.EI = float(rho), float(EA), float(EI)
+        uq, self.weights = bspline.gauss(nq)
+        self.B, self.dB, self.ddB = (bspline.basis(uq, nu) for nu in range(3))
+        self.D = np.stack([self.dB, self.ddB], axis=1)
+        self.dof = (3 * self.conn[:, :, None] + np.arange(3)).reshape(-1, 12)
+        Y = self.tangents(self.X)
+        self.Xp = Y[:, :, 0]
+        self.Xp2 = np.einsum("eqi,eqi->eq", self.Xp, self.Xp)
+        self.jac = np.sqrt(self.Xp2)
+        self.W = self.weights * self.jac
+        self.kappa0 = self._curvature(Y)
+        self.delta = 1e-12 / self.jac.mean() if self.ne else 1e-12
+
+    # -- geometry ------------------------------------------------------------
+    def tangents(self, x):
+        """y = (x', x'') at every quadrature point, (ne, nq, 2, 3).
+
+        y_{eqri} = Σ_a D_{qra} x_{conn[e, a], i}, D_q = [b'(u_q); b''(u_q)].
+        """
+        return np.einsum("qra,eai->eqri", self.D, np.asarray(x)[self.conn])
+
+    def points(self, x):
+        """Curve points x(u_q) at every quadrature point, (ne, nq, 3)."""
+        return np.einsum("qa,eai->eqi", self.B, np.asarray(x)[self.conn])
+
+    @staticmethod
+    def _curvature(y):
+        w = np.cross(y[:, :, 0], y[:, :, 1])
+        u2 = np.einsum("eqi,eqi->eq", y[:, :, 0], y[:, :, 0])
+        return np.sqrt(np.einsum("eqi,eqi->eq", w, w)) / u2**1.5
+
+    def strain(self, x):
+        """Green–Lagrange strain e = (|x'|² − |X'|²)/(2|X'|²), (ne, nq)."""
+        u = self.tangents(x)[:, :, 0]
+        return 0.5 * (np.einsum("eqi,eqi->eq", u, u) - self.Xp2) / self.Xp2
+
+    def curvature(self, x):
+        """Curvature κ = |x' × x''| / |x'|³, (ne, nq)."""
+        return self._curvature(self.tangents(x))
+
+    def rest_length(self):
+        """Rest length Σ_{e,q} w_q |X'| of all elements."""
+        return float(self.W.sum())
+
+    # -- mass ----------------------------------------------------------------
+    def mass_elements(self):
+        """Scalar element mass m_ab = Σ_q w_q ρ |X'| b_a b_b, (ne, 4, 4).
+
+        The 3-D element mass is m ⊗ I₃ in the interleaved DOFs 3a + i.
+        """
+        return np.einsum("eq,qa,qb->eab", self.rho * self.W, self.B, self.B)
+
+    # -- energies ------------------------------------------------------------
+    def stretch_energy(self, x):
+        """E_s = ½ Σ_{e,q} w_q |X'| EA e²."""
+        return 0.5 * self.EA * float(np.sum(self.W * self.strain(x) ** 2))
+
+    def bend_energy(self, x):
+        """E_b = ½ Σ_{e,q} w_q |X'| EI (κ − κ₀)²."""
+        dk = self.curvature(x) - self.kappa0
+        return 0.5 * self.EI * float(np.sum(self.W * dk**2))
+
+    def energy(self, x):
+        """E = E_s + E_b."""
+        return self.stretch_energy(x) + self.bend_energy(x)
+
+    def _terms(self, y, hessian):
+        """Point derivatives of every energy with a non-zero stiffness."""
+        if self.EA != 0.0:
+            yield stretch_terms(y, self.Xp2, self.W, self.EA, hessian)
+        if self.EI != 0.0:
+            yield bend_terms(y, self.kappa0, self.W, self.EI, self.delta, hessian)
+
+    def element_gradient(self, x):
+        """∂E/∂p per element, (ne, 12), local DOF 3a + i."""
+        y = self.tangents(x)
+        G = np.zeros((self.ne, 12))
+        for terms in self._terms(y, hessian=False):
+            G += chain_rule(self.D, *terms)[0]
+        return G
+
+    def element_hessian(self, x):
+        """∂²E/∂p∂p per element, (ne, 12, 12), symmetric, local DOF 3a + i."""
+        y = self.tangents(x)
+        K = np.zeros((self.ne, 12, 12))
+        for terms in self._terms(y, hessian=True):
+            K += chain_rule(self.D, *terms)[1]
+        return K
+
+    def assemble_vector(self, Ge):
+        """Σ_e of element vectors (ne, 12) into control-point rows, (ncp, 3)."""
+        return np.bincount(self.dof.ravel(), weights=np.ravel(Ge),
+                           minlength=3 * self.ncp).reshape(self.ncp, 3)
+
+    def gradient(self, x):
+        """Assembled ∂E/∂p, (ncp, 3) like the control points."""
+        return self.assemble_vector(self.element_gradient(x))

@@ -1,0 +1,250 @@
+"""Time integrators and the static solver for a constrained mechanical system.
+
+    M ε̈ = Q(ε, ε̇) + Cᵀλ,   C ε = d.
+
+A *system* (``knitfem.model.FullModel`` or ``knitfem.reduced.ReducedModel``)
+supplies M, its scalar factor m (M = m ⊗ I₃), C, c, d, ``forces(x, v, Q)``,
+``stiffness(x)`` (K = ∂²E/∂ε²) and ``material.damping`` c_d (Q_d = −c_d M ε̇).
+The integrators never see a yarn.
+
+Drift control is by projection at the velocity level: every step asks
+C ε_{n+1} = d exactly (C v_{n+1} = (d − C ε_n)/h), so constraint drift stays
+at the round-off of the linear solves.
+"""
+
+import numpy as np
+from petsc4py import PETSc
+
+from .saddle import SaddlePoint, saddle_ksp
+
+__all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "StaticSolver",
+           "INTEGRATORS"]
+
+EV_SOLVE = PETSc.Log.Event("knitSaddleSolve")
+EV_FACTOR = PETSc.Log.Event("knitFactor")
+
+
+class SimulationError(RuntimeError):
+    """A step failed; the message names the step, the time and the quantity."""
+
+
+def _default(prefix, name, value):
+    """Set an option default unless the user gave it."""
+    opts = PETSc.Options()
+    if not opts.hasName(prefix + name):
+        opts.setValue(prefix + name, value)
+
+
+class SymplecticEuler:
+    """Explicit symplectic Euler on the constant saddle point.
+
+        [m cᵀ] [v_{n+1}^k]   [(M v_n + h Q(ε_n, v_n))^k]
+        [c 0 ] [  μ^k    ] = [ (d^k − (c ε_n)^k) / h    ],   ε_{n+1} = ε_n + h v_{n+1},
+
+    for each component k = x, y, z: the scalar saddle point [m cᵀ; c 0] is a
+    third of the 3-D size, factorised once (``-<kind>_explicit_`` KSP) and
+    solved for three right-hand sides a step.
+    """
+
+    name = "symplectic"
+
+    def __init__(self, system, dt):
+        self.system, self.dt = system, dt
+        self.saddle = SaddlePoint(system.m, system.c)
+        self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_")
+        with EV_FACTOR:
+            self.ksp.setUp()
+        self.rhs, self.sol = self.saddle.createVec(), self.saddle.createVec()
+        self.Q, self.Mv = system.M.createVecLeft(), system.M.createVecLeft()
+        self.Cx = system.C.createVecLeft()
+
+    def step(self, t, x, v):
+        s, h = self.system, self.dt
+        s.forces(x, v, self.Q)
+        s.M.mult(v, self.Mv)
+        self.Mv.axpy(h, self.Q)
+        s.C.mult(x, self.Cx)
+        g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) / h
+        rhs_u, rhs_l = self.saddle.split(self.rhs)
+        mv = self.Mv.getArray(readonly=True)
+        vv = v.getArray()
+        its = 0
+        for k in range(3):
+            rhs_u[:] = mv[k::3]
+            rhs_l[:] = g[k::3]
+            with EV_SOLVE:
+                self.ksp.solve(self.rhs, self.sol)
+            its += self.ksp.getIterationNumber()
+            vv[k::3] = self.saddle.split(self.sol)[0]
+        x.axpy(h, v)
+        return {"newton": 0, "ksp": its}
+
+
+class BackwardEuler:
+    """Implicit (backward) Euler with Newton (PETSc SNES, prefix ``-<kind>_``).
+
+    Unknowns z = (v_{n+1}, μ) with μ = −hλ; residual
+
+        F_u = M (v − v_n) − h Q(ε_n + h v, v) + Cᵀ μ,
+        F_λ = C v − (d − C ε_n) / h,
+
+    and Jacobian [A Cᵀ; C 0] with A = h² K + (1 + h c_d) M, assembled as one
+    AIJ matrix; its KSP/PC is chosen by ``-<kind>_ksp_type``,
+    ``-<kind>_pc_type`` … (MUMPS LU by default).
+    """
+
+    name = "implicit"
+
+    def __init__(self, system, dt):
+        self.system, self.dt = system, dt
+        prefix = f"{system.kind}_"
+        K = system.stiffness(system.rest_state())
+        self.A = K.duplicate(copy=True)
+        self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle = SaddlePoint(self.A, system.C)
+        self.snes = PETSc.SNES().create(comm=system.comm)
+        self.snes.setOptionsPrefix(prefix)
+        self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
+        self.snes.setFunction(self._residual, self.F)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
+        self.snes.setType("newtonls")
+        self.snes.getLineSearch().setType("basic")
+        self.snes.setTolerances(rtol=1e-9, atol=1e-50, max_it=25)
+        ksp = saddle_ksp(self.saddle, prefix)
+        self.snes.setKSP(ksp)
+        self.snes.setFromOptions()
+        self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
+        self.v, self.xt = system.M.createVecLeft(), system.M.createVecLeft()
+        self.Q, self.Mv = system.M.createVecLeft(), system.M.createVecLeft()
+        self.mu, self.Cx = system.C.createVecLeft(), system.C.createVecLeft()
+        self.tmp = system.M.createVecLeft()
+        self.xn = self.vn = None
+
+    def _unpack(self, z):
+        u, lam = self.saddle.split(z)
+        self.v.getArray()[:] = u
+        self.mu.getArray()[:] = lam
+        self.xn.copy(self.xt)
+        self.xt.axpy(self.dt, self.v)
+
+    def _residual(self, snes, z, F):
+        s, h = self.system, self.dt
+        self._unpack(z)
+        s.forces(self.xt, self.v, self.Q)
+        self.v.copy(self.tmp)
+        self.tmp.axpy(-1.0, self.vn)
+        s.M.mult(self.tmp, self.Mv)
+        self.Mv.axpy(-h, self.Q)
+        fu, fl = self.saddle.split(F)
+        fu[:] = self.Mv.getArray(readonly=True)
+        if self.saddle.constrained:
+            s.C.multTranspose(self.mu, self.tmp)
+            fu += self.tmp.getArray(readonly=True)
+            s.C.mult(self.v, self.Cx)
+            fl[:] = self.Cx.getArray(readonly=True) - self.g
+
+    def _jacobian(self, snes, z, J, P):
+        s, h = self.system, self.dt
+        self._unpack(z)
+        K = s.stiffness(self.xt)
+        K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        self.A.scale(h * h)
+        self.A.axpy(1.0 + h * s.material.damping, s.M,
+                    PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle.update()
+
+    def step(self, t, x, v):
+        s, h = self.system, self.dt
+        self.xn, self.vn = x, v
+        s.C.mult(x, self.Cx)
+        self.g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) / h
+        zu, _ = self.saddle.split(self.z)
+        zu[:] = v.getArray(readonly=True)          # μ: previous step's value
+        if not self.user_atol:
+            s.M.mult(v, self.Mv)
+            scale = self.Mv.norm() + h * s.Qg.norm()
+            self.snes.setTolerances(atol=1e-12 * scale + 1e-300)
+        self.snes.solve(None, self.z)
+        reason = self.snes.getConvergedReason()
+        if reason < 0:
+            raise SimulationError(f"Newton did not converge (SNES reason {reason}, "
+                                  f"|F| = {self.snes.getFunctionNorm():.3e})")
+        self._unpack(self.z)
+        self.v.copy(v)
+        x.axpy(h, v)
+        return {"newton": self.snes.getIterationNumber(),
+                "ksp": self.snes.getLinearSolveIterations()}
+
+
+class StaticSolver:
+    """Static equilibrium −Q(ε, 0) + Cᵀμ = 0, C ε = d by Newton (``-static_``)
+    with load stepping: gravity is applied in ``steps`` equal increments."""
+
+    def __init__(self, system, steps=5):
+        self.system, self.steps = system, steps
+        K = system.stiffness(system.rest_state())
+        self.A = K.duplicate(copy=True)
+        self.saddle = SaddlePoint(self.A, system.C)
+        self.snes = PETSc.SNES().create(comm=system.comm)
+        self.snes.setOptionsPrefix("static_")
+        self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
+        self.snes.setFunction(self._residual, self.F)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
+        self.snes.setType("newtonls")
+        self.snes.getLineSearch().setType("bt")
+        self.snes.setTolerances(rtol=1e-10, atol=1e-50, max_it=50)
+        self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
+        self.snes.setFromOptions()
+        self.x, self.zero = system.M.createVecLeft(), system.M.createVecLeft()
+        self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
+        self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
+        self.load = 1.0
+
+    def _unpack(self, z):
+        u, lam = self.saddle.split(z)
+        self.x.getArray()[:] = u
+        self.mu.getArray()[:] = lam
+
+    def _residual(self, snes, z, F):
+        s = self.system
+        self._unpack(z)
+        s.forces(self.x, self.zero, self.Q)
+        self.Q.axpy(self.load - 1.0, s.Qg)
+        fu, fl = self.saddle.split(F)
+        fu[:] = -self.Q.getArray(readonly=True)
+        if self.saddle.constrained:
+            s.C.multTranspose(self.mu, self.tmp)
+            fu += self.tmp.getArray(readonly=True)
+            s.C.mult(self.x, self.Cx)
+            fl[:] = self.Cx.getArray(readonly=True) - s.d.getArray(readonly=True)
+
+    def _jacobian(self, snes, z, J, P):
+        self._unpack(z)
+        self.system.stiffness(self.x).copy(self.A,
+                                           PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        self.saddle.update()
+
+    def solve(self, x, monitor=None):
+        """Equilibrium from the initial guess x (overwritten). Returns Newton its."""
+        self.saddle.split(self.z)[0][:] = x.getArray(readonly=True)
+        its = 0
+        scale = self.system.Qg.norm()
+        if not PETSc.Options().hasName("static_snes_atol"):
+            self.snes.setTolerances(atol=1e-10 * scale + 1e-300)
+        for i in range(1, self.steps + 1):
+            self.load = i / self.steps
+            self.snes.solve(None, self.z)
+            reason = self.snes.getConvergedReason()
+            its += self.snes.getIterationNumber()
+            if monitor:
+                monitor(i, self.load, self.snes)
+            if reason < 0:
+                raise SimulationError(f"static Newton did not converge at load "
+                                      f"{self.load:.3g} (SNES reason {reason}, |F| = "
+                                      f"{self.snes.getFunctionNorm():.3e})")
+        self._unpack(self.z)
+        self.x.copy(x)
+        return its
+
+
+INTEGRATORS = {"symplectic": SymplecticEuler, "implicit": BackwardEuler}

@@ -1,0 +1,87 @@
+"""Saddle-point systems [A Cᵀ; C 0] as one AIJ matrix, and their KSP.
+
+The blocks are wrapped in a MATNEST and converted to AIJ (MUMPS cannot factor
+a nest); the constraint block carries an explicit zero diagonal so that
+factorisations and fieldsplit find its entries. When A's values change
+(same pattern) ``update`` converts again into the same matrix. Each rank's
+rows are [its A rows, its C rows], so a saddle vector's local array is the
+concatenation of the two local parts.
+"""
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = ["SaddlePoint", "saddle_ksp"]
+
+
+def zero_diagonal(comm, n_local, n_global):
+    """An AIJ matrix holding explicit zeros on its diagonal."""
+    start = comm.tompi4py().exscan(n_local) or 0
+    ptr = np.arange(n_local + 1, dtype=PETSc.IntType)
+    idx = np.arange(start, start + n_local, dtype=PETSc.IntType)
+    Z = PETSc.Mat().createAIJ(((n_local, n_global), (n_local, n_global)),
+                              csr=(ptr, idx, np.zeros(n_local)), comm=comm)
+    Z.assemble()
+    return Z
+
+
+class SaddlePoint:
+    """K = [A Cᵀ; C 0] for A (n×n) and C (k×n); K = A when C has no rows.
+
+    Collective. ``nu`` and ``nl`` are the local sizes of the two parts.
+    """
+
+    def __init__(self, A, C):
+        self.A, self.C = A, C
+        self.nu = A.getLocalSize()[0]
+        self.nl = C.getLocalSize()[0] if C is not None else 0
+        self.constrained = C is not None and C.getSize()[0] > 0
+        if not self.constrained:
+            self.nl, self.nest, self.K = 0, None, A
+            return
+        comm = A.getComm()
+        self.Ct = C.transpose(PETSc.Mat())
+        self.Z = zero_diagonal(comm, *C.getSizes()[0])
+        self.nest = PETSc.Mat().createNest([[A, self.Ct], [C, self.Z]], comm=comm)
+        self.K = self.nest.convert("aij", PETSc.Mat())
+        self.K.setBlockSize(1)
+        self.fields = self.nest.getNestISs()[0]
+
+    def update(self):
+        """Refresh K after A's values changed (same nonzero pattern)."""
+        if self.constrained:
+            self.nest.convert("aij", self.K)
+
+    def createVec(self):
+        return self.K.createVecRight()
+
+    def split(self, z):
+        """Local arrays (u part, λ part) of a saddle vector, as views."""
+        a = z.getArray()
+        return a[: self.nu], a[self.nu:]
+
+    def destroy(self):
+        if self.constrained:
+            for obj in (self.Ct, self.Z, self.nest, self.K):
+                obj.destroy()
+
+
+def saddle_ksp(saddle, prefix):
+    """A KSP on the saddle point: MUMPS LU by default, then the command line.
+
+    Fieldsplit preconditioners get the fields "u" (coordinates) and "l"
+    (multipliers), e.g. ``-<prefix>pc_type fieldsplit
+    -<prefix>pc_fieldsplit_type schur``.
+    """
+    ksp = PETSc.KSP().create(comm=saddle.K.getComm())
+    ksp.setOptionsPrefix(prefix)
+    ksp.setOperators(saddle.K)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
+    ksp.setErrorIfNotConverged(True)
+    ksp.setFromOptions()
+    if pc.getType() == "fieldsplit" and saddle.constrained:
+        pc.setFieldSplitIS(("u", saddle.fields[0]), ("l", saddle.fields[1]))
+    return ksp

@@ -1,0 +1,88 @@
+"""The full model's constant blocks assembled in PETSc: mass and constraints."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from knitfem import bspline
+from knitfem.fabric import Fabric
+from knitfem.model import FullModel, Material
+from knitfem.pattern import Jersey, jersey_fabric
+
+COMM = PETSc.COMM_SELF
+
+
+def to_scipy(A):
+    indptr, indices, values = A.getValuesCSR()
+    return sp.csr_matrix((values, indices, indptr), shape=A.getSize())
+
+
+@pytest.fixture(scope="module")
+def jersey_model():
+    fab = jersey_fabric(Jersey(3, 2, radius=1e-3), hold_top=True)
+    model = FullModel(COMM, fab, Material(rho=2e-5))
+    yield fab, model
+    model.destroy()
+
+
+def test_total_mass_is_rho_times_rest_length(jersey_model):
+    fab, model = jersey_model
+    m = to_scipy(model.m)
+    total = m.sum()
+    # partition of unity: Σ_ij m_ij = ρ Σ_q w_q |X'| exactly
+    assert np.isclose(total, 2e-5 * model.elements.rest_length(), rtol=1e-12)
+    # and the quadrature length is the arc length of the rest splines
+    u, w = bspline.gauss(12)
+    length = 0.0
+    for P in fab.X:
+        s = (np.arange(fab.ncp - 3)[:, None] + u).ravel()
+        length += np.sum(np.tile(w, fab.ncp - 3)
+                         * np.linalg.norm(bspline.curve_points(P, s, 1), axis=-1))
+    assert np.isclose(total, 2e-5 * length, rtol=1e-4)
+
+
+def test_straight_yarn_mass_exact():
+    L, n = 0.3, 20
+    X = np.zeros((1, n, 3))
+    X[0, :, 0] = np.linspace(0, L, n)          # equally spaced: |X'| constant
+    model = FullModel(COMM, Fabric(X, 1e-3), Material(rho=0.5))
+    length = L * (n - 3) / (n - 1)              # the spline spans s ∈ [0, n − 3]
+    assert np.isclose(to_scipy(model.m).sum(), 0.5 * length, rtol=1e-12)
+    model.destroy()
+
+
+def test_mass_symmetric_positive_definite_and_banded(jersey_model):
+    fab, model = jersey_model
+    m = to_scipy(model.m).toarray()
+    assert np.allclose(m, m.T, rtol=0, atol=1e-14 * np.abs(m).max())
+    assert np.linalg.eigvalsh(m).min() > 0
+    i, j = np.nonzero(m)
+    assert np.abs(i - j).max() == 3             # 7 diagonals a yarn
+    M = to_scipy(model.M).toarray()
+    assert np.array_equal(M, np.kron(m, np.eye(3)))
+    assert model.M.getBlockSize() == 3
+
+
+def test_constraint_rows_evaluate_their_points(jersey_model):
+    fab, model = jersey_model
+    x = model.rest_state()
+    r = model.C.createVecLeft()
+    model.C.mult(x, r)
+    d = model.d.getArray().reshape(-1, 3)
+    assert np.allclose(r.getArray().reshape(-1, 3), d, rtol=0, atol=1e-15)
+    # move yarn 1 rigidly: contacts between yarns 0/1 and 1/2 change by ±shift
+    shift = np.array([1e-3, -2e-3, 5e-4])
+    X = fab.X.copy()
+    X[1] += shift
+    x.getArray()[:] = X.ravel()
+    model.C.mult(x, r)
+    diff = r.getArray().reshape(-1, 3) - d
+    ya, _, yb, _ = fab.contacts
+    nct = len(ya)
+    expect = np.where((ya == 1)[:, None], shift, 0) - np.where((yb == 1)[:, None], shift, 0)
+    assert np.allclose(diff[:nct], expect, atol=1e-15)   # owner order = contact order
+    assert np.allclose(diff[nct:], 0, atol=1e-15)        # fixed points on yarn 2
+    C = to_scipy(model.C).toarray()
+    c = to_scipy(model.c).toarray()
+    assert np.array_equal(C, np.kron(c, np.eye(3)))

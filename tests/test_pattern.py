@@ -1,0 +1,62 @@
+"""Jersey geometry: interpolation of the closed-form curve, contacts, no
+penetration at rest."""
+
+import numpy as np
+import pytest
+
+from knitfem import bspline, constraints
+from knitfem.pattern import DT, T0, Jersey, jersey_fabric, min_yarn_distance
+
+
+def test_control_point_count_and_interpolation():
+    j = Jersey(3, 5)
+    P = j.control_points(1)
+    assert P.shape == (8 * 5 + 3, 3)
+    s = np.arange(j.nseg + 1.0)
+    assert np.allclose(bspline.curve_points(P, s), j.centreline(T0 + s * DT, 1),
+                       rtol=0, atol=1e-12 * j.scale)
+
+
+@pytest.mark.parametrize("rows,cols", [(2, 1), (4, 6)])
+def test_no_penetration_at_rest(rows, cols):
+    j = Jersey(rows, cols, radius=1e-3)
+    d, f, g = min_yarn_distance([j.control_points(f) for f in range(rows)], 16)
+    assert f != g
+    assert d >= 2 * j.radius
+
+
+def test_contacts_are_closest_approach_between_neighbours():
+    j = Jersey(3, 4)
+    k, sa, sb = j.contacts()
+    assert len(k) == 2 * 4 * 2
+    Pa, Pb = j.control_points(0), j.control_points(1)
+    D = bspline.curve_points(Pa, sa[:8]) - bspline.curve_points(Pb, sb[:8])
+    # stationarity: the offset is normal to both curves
+    assert np.abs(np.sum(D * bspline.curve_points(Pa, sa[:8], 1), -1)).max() < 1e-12 * j.scale**2
+    assert np.abs(np.sum(D * bspline.curve_points(Pb, sb[:8], 1), -1)).max() < 1e-12 * j.scale**2
+    # and a local minimum: nudging either parameter moves the points apart
+    dist = np.linalg.norm(D, axis=-1)
+    for da, db in ((0.05, 0), (-0.05, 0), (0, 0.05), (0, -0.05)):
+        Dn = bspline.curve_points(Pa, sa[:8] + da) - bspline.curve_points(Pb, sb[:8] + db)
+        assert np.all(np.linalg.norm(Dn, axis=-1) > dist)
+    assert np.all(dist >= 2 * j.radius)
+
+
+def test_every_constraint_row_evaluates_its_point():
+    j = Jersey(3, 2)
+    fab = jersey_fabric(j, hold_top=True)
+    c = constraints.build(fab)
+    X = fab.X.reshape(-1, 3)
+    assert np.abs(c.residual(X)).max() < 1e-15
+    dense = c.dense_rows(len(X))
+    ya, sa, yb, sb = fab.contacts
+    contact_rows = dense[c.kind == "contact"]
+    P = fab.X
+    expect = np.stack([bspline.curve_points(P[a], s) - bspline.curve_points(P[b], t)
+                       for a, s, b, t in zip(ya, sa, yb, sb)])
+    # grouped by owner yarn, stable: contacts keep their order
+    assert np.allclose(contact_rows @ X, expect, atol=1e-15)
+    fixed_rows = dense[c.kind == "fixed"]
+    heads = bspline.curve_points(P[2], j.heads(2))
+    assert np.allclose(fixed_rows @ X, heads, atol=1e-15)
+    assert np.all(np.diff(c.owner) >= 0)

@@ -1,0 +1,219 @@
+"""Yarn elements: mass, strain, curvature, and the exact gradient and Hessian.
+
+The rest yarns are perturbed helices (curved and torsioned, so that κ₀ > 0 and
+both energies matter); the current configuration is a random perturbation of
+the rest. Gradients are checked against central differences of the energy,
+Hessians against central differences of the gradient.
+"""
+
+import numpy as np
+import pytest
+
+from knitfem.yarn import YarnElements
+
+RHO, EA, EI = 0.3, 10.0, 1e-2
+NCP = 10
+ENERGIES = {"stretch": (EA, 0.0), "bend": (0.0, EI), "both": (EA, EI)}
+
+
+def chain(ncp, nyarn=1):
+    """Connectivity of nyarn concatenated yarns of ncp control points each."""
+    first = np.arange(nyarn)[:, None] * ncp + np.arange(ncp - 3)
+    return (first[..., None] + np.arange(4)).reshape(-1, 4)
+
+
+def helix(ncp, seed, nyarn=1):
+    """Rest control points of nyarn noisy helices (radius 1, pitch 1.9)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 3.0 * np.pi, ncp)
+    one = np.c_[np.cos(t), np.sin(t), 0.3 * t]
+    X = np.concatenate([one + [0.0, 3.0 * k, 0.0] for k in range(nyarn)])
+    return X + 0.05 * rng.normal(size=X.shape)
+
+
+def deformed(X, seed, amount=0.1):
+    return X + amount * np.random.default_rng(seed).normal(size=X.shape)
+
+
+def yarn(energy="both", nyarn=2, seed=0):
+    X = helix(NCP, seed, nyarn)
+    return YarnElements(X, chain(NCP, nyarn), RHO, *ENERGIES[energy])
+
+
+def dense_hessian(y, x):
+    """Assembled ∂²E/∂p² (3 ncp, 3 ncp) from the element Hessians."""
+    K = np.zeros((3 * y.ncp, 3 * y.ncp))
+    np.add.at(K, (y.dof[:, :, None], y.dof[:, None, :]), y.element_hessian(x))
+    return K
+
+
+def central_differences(f, x, h):
+    """Columns (f(x + h e_k) − f(x − h e_k)) / 2h over every coordinate k."""
+    cols = []
+    for k in range(x.size):
+        d = np.zeros(x.size)
+        d[k] = h
+        d = d.reshape(x.shape)
+        cols.append((np.asarray(f(x + d)) - np.asarray(f(x - d))).ravel() / (2 * h))
+    return np.array(cols).T
+
+
+def rotation(seed):
+    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q * np.sign(np.linalg.det(q))
+
+
+def relative(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+# -- mass ---------------------------------------------------------------------
+def test_mass_sums_to_density_times_rest_length():
+    y = yarn()
+    m = y.mass_elements()
+    assert m.shape == (y.ne, 4, 4)
+    assert np.isclose(m.sum(), RHO * y.rest_length(), rtol=1e-12, atol=0)
+    assert np.allclose(m, m.transpose(0, 2, 1), rtol=0, atol=1e-15)
+    assert np.linalg.eigvalsh(m).min() > 0
+
+
+def test_straight_yarn_total_mass():
+    h, ncp = 0.2, 12
+    direction = np.array([1.0, 2.0, -2.0]) / 3.0
+    X = np.arange(ncp)[:, None] * h * direction + [0.5, -1.0, 2.0]
+    y = YarnElements(X, chain(ncp), RHO, EA, EI)
+    L = (ncp - 3) * h
+    assert np.isclose(y.rest_length(), L, rtol=1e-13)
+    # assembled scalar mass m_ij: every entry lands in some row, total ρL
+    rows = np.broadcast_to(y.conn[:, :, None], (y.ne, 4, 4))
+    row_sums = np.bincount(rows.ravel(), weights=y.mass_elements().ravel(),
+                           minlength=ncp)
+    assert np.isclose(row_sums.sum(), RHO * L, rtol=1e-12)
+    # the end control points carry less mass than the interior ones
+    assert row_sums[0] < row_sums[1] < row_sums[2] < row_sums[3]
+
+
+# -- strain and curvature ------------------------------------------------------
+@pytest.mark.parametrize("lam", [0.7, 1.0, 1.3])
+def test_uniform_stretch(lam):
+    ncp = 8
+    spacing = np.array([0.0, 0.1, 0.3, 0.4, 0.7, 0.8, 1.0, 1.05])  # non-uniform
+    X = spacing[:, None] * [0.0, 0.6, 0.8]
+    y = YarnElements(X, chain(ncp), RHO, EA, EI)
+    assert np.allclose(y.strain(lam * X), 0.5 * (lam**2 - 1), rtol=0, atol=1e-14)
+    assert np.isclose(y.stretch_energy(lam * X),
+                      0.5 * EA * (0.5 * (lam**2 - 1)) ** 2 * y.rest_length(),
+                      rtol=1e-12, atol=1e-300)
+    # on a curved yarn x = λX scales the strain the same way and κ by 1/λ
+    yh = yarn()
+    assert np.allclose(yh.strain(lam * yh.X), 0.5 * (lam**2 - 1), atol=1e-14)
+    assert np.allclose(yh.curvature(lam * yh.X), yh.kappa0 / lam, rtol=1e-12)
+
+
+def circle(n, R):
+    th = 2 * np.pi / n * np.arange(n + 3)
+    return R * np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
+
+
+def test_circle_curvature():
+    R = 2.0
+    err = []
+    for n in (32, 64):
+        X = circle(n, R)
+        err.append(np.abs(YarnElements(X, chain(n + 3), RHO, EA, EI).kappa0 * R - 1))
+    assert err[0].max() < 0.01
+    # second-order convergence in the control-point spacing
+    assert 3.5 < err[0].max() / err[1].max() < 4.5
+
+
+# -- the exact gradient and Hessian --------------------------------------------
+@pytest.mark.parametrize("energy", ["stretch", "bend"])
+def test_gradient_matches_finite_differences(energy):
+    y = yarn(energy)
+    x = deformed(y.X, 1)
+    g = y.gradient(x)
+    assert g.shape == (y.ncp, 3)
+    assert y.element_gradient(x).shape == (y.ne, 12)
+    fd = central_differences(y.energy, x, 1e-6).ravel()
+    assert relative(g.ravel(), fd) < 1e-6
+
+
+@pytest.mark.parametrize("energy", ["stretch", "bend"])
+def test_hessian_matches_finite_differences(energy):
+    y = yarn(energy)
+    x = deformed(y.X, 2)
+    Ke = y.element_hessian(x)
+    assert Ke.shape == (y.ne, 12, 12)
+    assert np.abs(Ke - Ke.transpose(0, 2, 1)).max() <= 1e-12 * np.abs(Ke).max()
+    fd = central_differences(y.gradient, x, 1e-6)
+    assert relative(dense_hessian(y, x), fd) < 1e-6
+
+
+def test_energy_is_sum_of_parts():
+    y = yarn()
+    x = deformed(y.X, 3)
+    parts = (yarn("stretch").energy(x), yarn("bend").energy(x))
+    assert np.isclose(y.stretch_energy(x), parts[0], rtol=1e-14)
+    assert np.isclose(y.bend_energy(x), parts[1], rtol=1e-14)
+    assert np.isclose(y.energy(x), sum(parts), rtol=1e-14)
+    assert min(parts) > 1e-3 * max(parts)  # both energies matter here
+
+
+# -- rest state and rigid motions ----------------------------------------------
+def test_rest_is_stress_free():
+    y = yarn()
+    assert y.energy(y.X) == 0.0
+    assert np.abs(y.gradient(y.X)).max() < 1e-14
+    assert y.energy(deformed(y.X, 4)) > 0.0
+
+
+def test_rigid_motion_invariance():
+    y = yarn()
+    x = deformed(y.X, 5)
+    Q, t = rotation(6), np.array([0.3, -2.0, 1.5])
+    xm = x @ Q.T + t
+    assert np.isclose(y.energy(xm), y.energy(x), rtol=1e-12)
+    g = y.gradient(x)
+    assert relative(y.gradient(xm), g @ Q.T) < 1e-12
+    K = dense_hessian(y, x)
+    Qb = np.kron(np.eye(y.ncp), Q)
+    assert relative(dense_hessian(y, xm), Qb @ K @ Qb.T) < 1e-11
+
+
+def test_gradient_orthogonal_to_rigid_modes():
+    y = yarn()
+    x = deformed(y.X, 7)
+    f = -y.gradient(x)
+    scale = np.linalg.norm(f) * np.linalg.norm(x)
+    assert np.linalg.norm(f.sum(axis=0)) < 1e-13 * np.linalg.norm(f)
+    assert np.linalg.norm(np.cross(x, f).sum(axis=0)) < 1e-13 * scale
+
+
+def test_hessian_annihilates_rigid_modes_at_rest():
+    y = yarn()
+    K = dense_hessian(y, y.X)
+    modes = [np.tile(np.eye(3)[i], y.ncp) for i in range(3)]
+    modes += [np.cross(np.eye(3)[i], y.X).ravel() for i in range(3)]
+    for r in modes:
+        assert np.linalg.norm(K @ r) < 1e-12 * np.linalg.norm(K) * np.linalg.norm(r)
+    # and at rest the Hessian is positive semi-definite
+    assert np.linalg.eigvalsh(K).min() > -1e-12 * np.linalg.norm(K)
+
+
+# -- straight yarns: bending smooth where κ = κ₀ = 0 ------------------------------
+def test_bending_smooth_at_straight_configuration():
+    s = np.array([0.0, 0.1, 0.3, 0.4, 0.7, 0.8, 1.0, 1.05, 1.3, 1.4])
+    X = s[:, None] * [1.0, 0.0, 0.0]
+    y = YarnElements(X, chain(len(s)), RHO, 0.0, EI)
+    assert np.all(y.kappa0 == 0.0)
+    # current: straight along another line, re-spaced so that x'' ∥ x' ≠ 0
+    x = (1.2 * s + 0.3 * s**2)[:, None] * np.array([2.0, -1.0, 2.0]) / 3.0
+    assert np.all(y.curvature(x) < 1e-12)
+    K = dense_hessian(y, x)
+    assert np.all(np.isfinite(K))
+    assert np.linalg.norm(K) > 0
+    assert np.abs(y.gradient(x)).max() < 1e-12 * np.linalg.norm(K)
+    assert np.linalg.eigvalsh(K).min() > -1e-10 * np.linalg.norm(K)  # a minimum
+    fd = central_differences(y.gradient, x, 1e-6)
+    assert relative(K, fd) < 1e-6
