@@ -9,7 +9,7 @@ from petsc4py import PETSc
 from .options import KnitError, KnitOptions
 from .pattern import Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
-__all__ = ["dofs", "pattern"]
+__all__ = ["dofs", "pattern", "run"]
 
 
 def jersey_from_options(opts, rows=7, cols=7):
@@ -98,3 +98,137 @@ def pattern(comm):
     PETSc.Sys.Print(f"wrote {base}.vtu and {base}.png; {fabric.nyarn} yarns of "
                     f"{fabric.ncp} control points, min distance between yarns "
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
+
+
+def material_from_options(opts):
+    """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping."""
+    from .model import Material
+
+    d = Material()
+    return Material(
+        rho=opts.getReal("rho", d.rho, "linear density [kg/m]", positive=True),
+        EA=opts.getReal("EA", d.EA, "axial stiffness EA [N]", positive=True),
+        EI=opts.getReal("EI", d.EI, "bending stiffness EI [N m^2]", nonnegative=True),
+        gravity=opts.getReal("gravity", d.gravity, "gravity g along -y [m/s^2]"),
+        damping=opts.getReal("damping", d.damping,
+                             "mass-proportional damping c_d [1/s]", nonnegative=True))
+
+
+def build_system(comm, opts, fabric, material):
+    """The full or reduced model of -knit_model, from a fabric."""
+    from .model import FullModel
+    from .reduced import ReducedModel, embedding_from_options
+
+    kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
+    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    stage = PETSc.Log.Stage("Set-up")
+    stage.push()
+    try:
+        full = FullModel(comm, fabric, material, nq=nq)
+        if kind == "full":
+            return full
+        return ReducedModel(full, embedding_from_options(opts, comm, fabric,
+                                                         full.layout))
+    finally:
+        stage.pop()
+
+
+def run(comm):
+    """Simulate a scene with the full or reduced model (or solve its statics)."""
+    from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
+
+    from .scenes import SCENES, make_fabric
+    from .simulation import Simulation
+
+    opts = KnitOptions()
+    scene = opts.getChoice("scene", "hanging", SCENES, "scene")
+    jersey = jersey_from_options(opts)
+    length = opts.getReal("length", 0.1, "yarn length [m] (catenary, cantilever)",
+                          positive=True)
+    span = opts.getReal("span", 0.08, "distance between the pins [m] (catenary)",
+                        positive=True)
+    nseg = opts.getInt("segments", 40, "segments of the single yarn (catenary, "
+                       "cantilever)", 1)
+    material = material_from_options(opts)
+    t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
+    dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
+    method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    static = opts.getBool("static", False, "solve for the static equilibrium instead "
+                          "(Newton with load stepping, -static_snes_* options)")
+    load_steps = opts.getInt("load_steps", 5, "load steps of the static solve", 1)
+    every = opts.getInt("output_every", 10, "steps between progress lines and "
+                        "output frames", 1)
+    snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
+    ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
+                       "(0: none)", 0)
+    restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
+    drift = opts.getReal("drift_tol", 1e-6, "largest constraint violation [m] "
+                         "before the run stops", positive=True)
+    try:
+        snapshots = [float(s) for s in snaps.split(",") if s]
+    except ValueError:
+        raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
+                        "times in seconds") from None
+    out = output_dir(f"out/{scene}")
+    try:
+        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius)
+    except ValueError as err:
+        raise KnitError(str(err)) from None
+    system = build_system(comm, opts, fabric, material)
+    opts.printHelp("knitfem run")
+    PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
+                    f"{system.M.getSize()[0]} coordinates + "
+                    f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
+    if static:
+        return run_static(comm, system, scene, out, load_steps, StaticSolver)
+    with PETSc.Log.Stage("Set-up"):
+        integrator = INTEGRATORS[method](system, dt)
+    sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
+                     snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt)
+    if restart:
+        sim.restart(restart)
+    try:
+        rec = sim.run(t_end)
+    except SimulationError as err:
+        PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in {out})")
+        return 3
+    PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
+                    f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
+                    f"{rec['sag']:.4g} m; summary in {out}/summary.json")
+
+
+def run_static(comm, system, scene, out, load_steps, StaticSolver):
+    """Static equilibrium by Newton with load stepping; writes summary.json."""
+    import time
+
+    from solvers.integrators import SimulationError
+
+    from .simulation import Simulation
+
+    start = time.perf_counter()
+    with PETSc.Log.Stage("Static solve"):
+        solver = StaticSolver(system, load_steps)
+        sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
+        P0, pts0 = sim.geometry()
+        if comm.rank == 0:
+            sim.initial_lowest = pts0[..., 1].min()
+        try:
+            its = solver.solve(sim.x, monitor=lambda i, load, snes: PETSc.Sys.Print(
+                f"load step {i}/{load_steps}  load {load:.2f}  newton "
+                f"{snes.getIterationNumber()}  |F| {snes.getFunctionNorm():.3e}"))
+        except SimulationError as err:
+            PETSc.Sys.Print(f"knitfem run: error: {err}")
+            return 3
+    sim.wall_time = time.perf_counter() - start
+    sim.stats["newton"] = its
+    rec = sim.summary()
+    if comm.rank == 0 and out:
+        from . import io
+
+        P, _ = sim.geometry()
+        io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
+                             system.fabric.radius)
+        io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
+                title=f"{scene}, static equilibrium ({system.kind} model)")
+    PETSc.Sys.Print(f"static equilibrium in {its} Newton iterations; tip "
+                    f"{np.round(rec['tip'], 6).tolist()}, sag {rec['sag']:.4g} m")

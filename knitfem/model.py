@@ -72,13 +72,16 @@ class FullModel:
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
             self._build_constraints()
-            self.indptr3, self.indices3, self.slot3 = self.pattern.blocks3()
+            indptr3, indices3, self.slot3 = self.pattern.blocks3()
+            self.indptr3 = indptr3.astype(PETSc.IntType)
+            self.indices3 = indices3.astype(PETSc.IntType)
             self.K = None
             self.Qg = self.M.createVecLeft()
             G = self.M.createVecRight()
             G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
             self.M.mult(G, self.Qg)
             G.destroy()
+            self.total_mass = self.m.getRowSum().sum()
         for A, name in ((self.m, "full_m_"), (self.M, "full_M_"),
                         (self.C, "full_C_")):
             A.setOptionsPrefix(name)
@@ -151,7 +154,7 @@ class FullModel:
             if self.K is None:
                 n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
                 self.K = create_aij(self.comm, (n, N), (n, N),
-                                    (self.indptr3, self.indices3 + 0, values), bsize=3)
+                                    (self.indptr3, self.indices3, values), bsize=3)
                 self.K.setOptionsPrefix("full_K_")
             else:
                 self.K.setValuesCSR(self.indptr3, self.indices3, values)

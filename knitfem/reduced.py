@@ -94,6 +94,7 @@ class ReducedModel:
     def __init__(self, full, embedding):
         self.full, self.embedding = full, embedding
         self.comm, self.material = full.comm, full.material
+        self.total_mass = full.total_mass
         self.fabric, self.layout = full.fabric, full.layout
         G, Gs = embedding.Gamma, embedding.Gamma_scalar
         with EV_PTAP:

@@ -28,7 +28,8 @@ f₂ = W ψ''(ε),
 Stretching uses ε = e, ψ = ½ EA e². Bending uses ε = c = κ² (smooth in y even
 where the yarn is straight) and ψ = ½ EI (√c − κ₀)², so f₁ = ½ W EI (1 − κ₀/√c),
 f₂ = ¼ W EI κ₀ c^{−3/2}: where κ₀ = 0 the density is ½ EI c, a polynomial
-over |x'|⁶, and its Hessian is finite at straight configurations.
+over |x'|⁶, and its Hessian is finite at straight configurations. Where
+κ₀ > 0, ψ' and ψ'' use √(c + δ²) with a negligible δ (see ``bend_terms``).
 
 Element DOFs are interleaved, local index 3a + i (control point a, component
 i), and the assembled gradient is laid out like the control points (ncp, 3).
@@ -42,39 +43,50 @@ from . import bspline
 __all__ = ["YarnElements", "chain_rule", "stretch_terms", "bend_terms"]
 
 
-def chain_rule(D, f1, f2, g, H=None):
-    """Element gradient and Hessian of Σ_q ψ(ε) from point derivatives in y.
+def chain_rule(D, terms, hessian=True):
+    """Element gradient and Hessian of Σ_q ψ(ε), summed over energies.
 
-        G_{e,ai} = Σ_{q,r} D_{qra} f₁ g_{eqri},
+    For every energy, from its point derivatives with respect to y = (x', x''),
+
+        G_{e,ai}    = Σ_{q,r} D_{qra} f₁ g_{eqri},
         K_{e,ai,bj} = Σ_{q,r,s} D_{qra} (f₂ g_{eqri} g_{eqsj} + f₁ H_{eqrisj}) D_{qsb}.
+
+    The point quantities of all energies are added first and expanded once:
+    K is one matrix product with the (4nq, 16) table D_{qra} D_{qsb}.
 
     Parameters
     ----------
     D : (nq, 2, 4)
         Maps the element's control points to y = (x', x''): y_{qri} = D_{qra} p_{ai}.
-    f1, f2 : (ne, nq)
-        W ψ'(ε) and W ψ''(ε), W = w_q |X'| the rest line element.
-    g : (ne, nq, 2, 3)
-        ∂ε/∂y.
-    H : (ne, nq, 2, 3, 2, 3), optional
-        ∂²ε/∂y²; without it no Hessian is formed.
+    terms : iterable of (f1, f2, g, H), at least one
+        One tuple per energy: f1, f2 (ne, nq) are W ψ'(ε) and W ψ''(ε), with
+        W = w_q |X'| the rest line element; g (ne, nq, 2, 3) is ∂ε/∂y and
+        H (ne, nq, 2, 3, 2, 3) is ∂²ε/∂y² (ignored unless ``hessian``).
+    hessian : bool
+        Form K as well as G.
 
     Returns
     -------
     G : (ne, 12)
         ∂E/∂p, local DOF 3a + i.
     K : (ne, 12, 12) or None
-        ∂²E/∂p∂p.
+        ∂²E/∂p∂p, exactly symmetric.
     """
-    ne = g.shape[0]
-    G = np.einsum("qra,eqri->eai", D, f1[..., None, None] * g).reshape(ne, 12)
-    if H is None:
+    gy = Hy = 0.0
+    for f1, f2, g, H in terms:
+        gy = gy + f1[..., None, None] * g
+        if hessian:
+            gg = g[:, :, :, :, None, None] * g[:, :, None, None, :, :]
+            Hy = Hy + (f1[..., None, None, None, None] * H
+                       + f2[..., None, None, None, None] * gg)
+    ne, nq = gy.shape[:2]
+    G = np.einsum("qra,eqri->eai", D, gy).reshape(ne, 12)
+    if not hessian:
         return G, None
-    Hy = (f1[..., None, None, None, None] * H
-          + f2[..., None, None, None, None] * np.einsum("eqri,eqsj->eqrisj", g, g))
-    T = np.einsum("eqrisj,qsb->eqribj", Hy, D)
-    K = np.einsum("qra,eqribj->eaibj", D, T).reshape(ne, 12, 12)
-    return G, K
+    DD = np.einsum("qra,qsb->qrsab", D, D).reshape(4 * nq, 16)
+    Hy = Hy.transpose(0, 3, 5, 1, 2, 4).reshape(9 * ne, 4 * nq)  # (e i j, q r s)
+    K = (Hy @ DD).reshape(ne, 3, 3, 4, 4).transpose(0, 3, 1, 4, 2).reshape(ne, 12, 12)
+    return G, 0.5 * (K + K.transpose(0, 2, 1))      # symmetric to the last bit
 
 
 def stretch_terms(y, Xp2, W, EA, hessian=True):
@@ -192,7 +204,7 @@ class YarnElements:
     EI : float
         Bending stiffness (N m²).
     nq : int
-        Gauss points per element (4 integrates the mass exactly).
+        Gauss points per element (4 integrates b_a b_b exactly).
 
     Attributes
     ----------
@@ -200,6 +212,10 @@ class YarnElements:
         Basis functions and their first and second derivatives at the points.
     weights : (nq,)
         Gauss weights on [0, 1].
+    D : (nq, 2, 4)
+        [dB; ddB]: (x', x'') = D p at each point (see ``chain_rule``).
+    dof : (ne, 12)
+        Global interleaved DOF 3 conn[e, a] + i of local DOF 3a + i.
     Xp : (ne, nq, 3)
         Rest tangent X'.
     Xp2, jac : (ne, nq)
@@ -283,30 +299,29 @@ class YarnElements:
         return self.stretch_energy(x) + self.bend_energy(x)
 
     def _terms(self, y, hessian):
-        """Point derivatives of every energy with a non-zero stiffness."""
-        if self.EA != 0.0:
-            yield stretch_terms(y, self.Xp2, self.W, self.EA, hessian)
+        """Point derivatives of every energy with a non-zero stiffness.
+
+        Stretching is always included (it is all zeros when EA = 0), so that
+        ``chain_rule`` receives at least one energy.
+        """
+        yield stretch_terms(y, self.Xp2, self.W, self.EA, hessian)
         if self.EI != 0.0:
             yield bend_terms(y, self.kappa0, self.W, self.EI, self.delta, hessian)
 
     def element_gradient(self, x):
         """∂E/∂p per element, (ne, 12), local DOF 3a + i."""
-        y = self.tangents(x)
-        G = np.zeros((self.ne, 12))
-        for terms in self._terms(y, hessian=False):
-            G += chain_rule(self.D, *terms)[0]
-        return G
+        terms = self._terms(self.tangents(x), hessian=False)
+        return chain_rule(self.D, terms, hessian=False)[0]
 
     def element_hessian(self, x):
         """∂²E/∂p∂p per element, (ne, 12, 12), symmetric, local DOF 3a + i."""
-        y = self.tangents(x)
-        K = np.zeros((self.ne, 12, 12))
-        for terms in self._terms(y, hessian=True):
-            K += chain_rule(self.D, *terms)[1]
-        return K
+        return chain_rule(self.D, self._terms(self.tangents(x), hessian=True))[1]
 
     def assemble_vector(self, Ge):
-        """Σ_e of element vectors (ne, 12) into control-point rows, (ncp, 3)."""
+        """Σ_e of element vectors (ne, 12) into control-point rows, (ncp, 3).
+
+        One ``np.bincount`` over the global DOFs ``dof``.
+        """
         return np.bincount(self.dof.ravel(), weights=np.ravel(Ge),
                            minlength=3 * self.ncp).reshape(self.ncp, 3)
 

@@ -108,7 +108,7 @@ class BackwardEuler:
         self.snes.setFunction(self._residual, self.F)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
         self.snes.setType("newtonls")
-        self.snes.getLineSearch().setType("basic")
+        _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-9, atol=1e-50, max_it=25)
         ksp = saddle_ksp(self.saddle, prefix)
         self.snes.setKSP(ksp)
@@ -119,16 +119,18 @@ class BackwardEuler:
         self.mu, self.Cx = system.C.createVecLeft(), system.C.createVecLeft()
         self.tmp = system.M.createVecLeft()
         self.xn = self.vn = None
+        self.h = dt
+        self.max_halvings = 6
 
     def _unpack(self, z):
         u, lam = self.saddle.split(z)
         self.v.getArray()[:] = u
         self.mu.getArray()[:] = lam
         self.xn.copy(self.xt)
-        self.xt.axpy(self.dt, self.v)
+        self.xt.axpy(self.h, self.v)
 
     def _residual(self, snes, z, F):
-        s, h = self.system, self.dt
+        s, h = self.system, self.h
         self._unpack(z)
         s.forces(self.xt, self.v, self.Q)
         self.v.copy(self.tmp)
@@ -144,7 +146,7 @@ class BackwardEuler:
             fl[:] = self.Cx.getArray(readonly=True) - self.g
 
     def _jacobian(self, snes, z, J, P):
-        s, h = self.system, self.dt
+        s, h = self.system, self.h
         self._unpack(z)
         K = s.stiffness(self.xt)
         K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
@@ -154,31 +156,52 @@ class BackwardEuler:
         self.saddle.update()
 
     def step(self, t, x, v):
-        s, h = self.system, self.dt
-        self.xn, self.vn = x, v
+        """Advance (ε, ε̇) by dt; a failed Newton solve is retried as two half
+        steps, down to dt / 2^max_halvings, before the step fails."""
+        stats = {"newton": 0, "ksp": 0}
+        self._advance(x, v, self.dt, 0, stats)
+        return stats
+
+    def _advance(self, x, v, h, depth, stats):
+        try:
+            self._solve(x, v, h, stats)
+        except SimulationError:
+            if depth >= self.max_halvings:
+                raise
+            for _ in range(2):
+                self._advance(x, v, h / 2, depth + 1, stats)
+
+    def _solve(self, x, v, h, stats):
+        s = self.system
+        self.h, self.xn, self.vn = h, x, v
         s.C.mult(x, self.Cx)
         self.g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) / h
-        zu, _ = self.saddle.split(self.z)
-        zu[:] = v.getArray(readonly=True)          # μ: previous step's value
+        zu, zl = self.saddle.split(self.z)
+        zu[:] = v.getArray(readonly=True)
+        zl[:] = 0.0
         if not self.user_atol:
             s.M.mult(v, self.Mv)
             scale = self.Mv.norm() + h * s.Qg.norm()
-            self.snes.setTolerances(atol=1e-12 * scale + 1e-300)
+            floor = 1e-14 * s.total_mass * s.fabric.radius / h
+            self.snes.setTolerances(atol=max(1e-12 * scale, floor))
         self.snes.solve(None, self.z)
         reason = self.snes.getConvergedReason()
+        stats["newton"] += self.snes.getIterationNumber()
+        stats["ksp"] += self.snes.getLinearSolveIterations()
         if reason < 0:
             raise SimulationError(f"Newton did not converge (SNES reason {reason}, "
-                                  f"|F| = {self.snes.getFunctionNorm():.3e})")
+                                  f"|F| = {self.snes.getFunctionNorm():.3e}, "
+                                  f"h = {h:.3g} s)")
         self._unpack(self.z)
         self.v.copy(v)
         x.axpy(h, v)
-        return {"newton": self.snes.getIterationNumber(),
-                "ksp": self.snes.getLinearSolveIterations()}
 
 
 class StaticSolver:
     """Static equilibrium −Q(ε, 0) + Cᵀμ = 0, C ε = d by Newton (``-static_``)
     with load stepping: gravity is applied in ``steps`` equal increments."""
+
+    name, dt = "static", 0.0
 
     def __init__(self, system, steps=5):
         self.system, self.steps = system, steps
@@ -191,7 +214,7 @@ class StaticSolver:
         self.snes.setFunction(self._residual, self.F)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
         self.snes.setType("newtonls")
-        self.snes.getLineSearch().setType("bt")
+        _default("static_", "snes_linesearch_type", "bt")
         self.snes.setTolerances(rtol=1e-10, atol=1e-50, max_it=50)
         self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
         self.snes.setFromOptions()

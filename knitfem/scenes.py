@@ -1,0 +1,71 @@
+"""Scenes: the fabric, its world constraints and what to report.
+
+Axes: x along the courses, y along the wales and up, z through the
+thickness; gravity acts along −y.
+
+hanging     r × nc jersey, the top course held at its nc loop heads.
+freefall    r × nc jersey, no world constraints.
+catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
+            rest a circular arc of length L sagging in −y (stress free).
+cantilever  one straight yarn of length L along +x, clamped at the origin.
+"""
+
+import numpy as np
+from scipy.optimize import brentq
+
+from .fabric import Fabric
+from .pattern import jersey_fabric
+
+__all__ = ["SCENES", "make_fabric", "straight_yarn", "arc_yarn"]
+
+SCENES = ("hanging", "freefall", "catenary", "cantilever")
+
+
+def interpolating_control_points(points):
+    """Control points whose uniform cubic B-spline passes through ``points``
+    (nseg + 1, 3) at its junctions, with zero second derivative at the ends."""
+    n = len(points) + 2
+    A = np.zeros((n, n))
+    rows = np.arange(n - 2)
+    A[rows + 1, rows], A[rows + 1, rows + 1], A[rows + 1, rows + 2] = 1 / 6, 4 / 6, 1 / 6
+    A[0, :3] = A[-1, -3:] = (1, -2, 1)
+    rhs = np.zeros((n, 3))
+    rhs[1:-1] = points
+    return np.linalg.solve(A, rhs)
+
+
+def straight_yarn(length, nseg):
+    """Control points of a straight yarn from the origin along +x, |X'| constant."""
+    X = np.zeros((nseg + 3, 3))
+    X[:, 0] = (np.arange(nseg + 3) - 1) * length / nseg
+    return X
+
+
+def arc_yarn(length, span, nseg):
+    """A circular arc of length L through (0,0,0) and (span,0,0), sagging in −y."""
+    if not span < length:
+        raise ValueError(f"catenary span {span} must be shorter than the yarn "
+                         f"length {length}")
+    # chord = 2R sin(θ/2), L = Rθ
+    half = brentq(lambda a: np.sin(a) / a - span / length, 1e-9, np.pi - 1e-12)
+    R = length / (2 * half)
+    phi = np.linspace(-half, half, nseg + 1)
+    pts = np.stack([span / 2 + R * np.sin(phi), R * np.cos(half) - R * np.cos(phi),
+                    np.zeros_like(phi)], axis=-1)
+    return interpolating_control_points(pts)
+
+
+def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4):
+    """The ``Fabric`` of a scene."""
+    if scene == "hanging":
+        return jersey_fabric(jersey, hold_top=True)
+    if scene == "freefall":
+        return jersey_fabric(jersey)
+    if scene == "catenary":
+        X = arc_yarn(length, span, nseg)[None]
+        return Fabric(X, radius, fixed=(np.zeros(2, int), np.array([0.0, nseg])))
+    if scene == "cantilever":
+        X = straight_yarn(length, nseg)[None]
+        root = (np.zeros(1, int), np.zeros(1))
+        return Fabric(X, radius, fixed=root, clamped=root)
+    raise ValueError(f"unknown scene {scene!r}: use one of {', '.join(SCENES)}")
