@@ -1,5 +1,7 @@
 """Distributed by whole yarns: matrices under mpirun -n P equal one rank's."""
 
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -51,3 +53,34 @@ def test_whole_yarns_per_rank(models):
     lo, hi = par.M.getOwnershipRange()
     assert (lo, hi) == (3 * lay.cp_start, 3 * lay.cp_end)
     assert lay.cp_start % lay.ncp_per_yarn == 0
+
+
+def run_scene(comm, kind, nsteps=4):
+    from helpers import models, run
+    from solvers.integrators import BackwardEuler
+
+    full, red = models(comm, jersey_fabric(Jersey(4, 2), hold_top=True))
+    system = full if kind == "full" else red
+    _, x, _ = run(system, BackwardEuler, 1e-3, nsteps)
+    return system, np.concatenate(comm.tompi4py().allgather(
+        system.full_state(x).getArray()))
+
+
+@pytest.mark.parametrize("kind", ["full", "reduced"])
+def test_run_equals_serial(kind):
+    par, xp = run_scene(PETSc.COMM_WORLD, kind)
+    ser, xs = run_scene(PETSc.COMM_SELF, kind)
+    assert np.abs(xp - ser.fabric.X.ravel()).max() > 1e-7          # it moved
+    # equal up to Newton's tolerance (1e-9 yarn radii a step)
+    assert np.allclose(xp, xs, rtol=0, atol=1e-8 * ser.fabric.radius)
+    if kind == "reduced":
+        for name in ("Gamma", "Gamma_scalar"):
+            A, R = getattr(par.embedding, name), getattr(ser.embedding, name)
+            assert par.comm.tompi4py().allreduce(local_rows_equal(A, R), op=min)
+        lo, hi = par.M.getOwnershipRange()
+        indptr, indices, values = par.M.getValuesCSR()
+        mine = sp.csr_matrix((values, indices, indptr), shape=(hi - lo, par.M.getSize()[1]))
+        indptr, indices, values = ser.M.getValuesCSR()
+        full = sp.csr_matrix((values, indices, indptr), shape=ser.M.getSize())
+        err = abs(mine - full[lo:hi]).max() if hi > lo else 0.0
+        assert par.comm.tompi4py().allreduce(err, op=max) <= 1e-14 * abs(full).max()

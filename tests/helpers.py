@@ -1,0 +1,42 @@
+"""Small builders shared by the tests (no assertions here)."""
+
+import numpy as np
+from petsc4py import PETSc
+
+from knitfem.model import FullModel, Material
+from knitfem.pattern import Jersey, jersey_fabric
+from knitfem.reduced import Embedding, ReducedModel
+from knitfem.volume import BoundingVolume
+
+
+def jersey(rows=2, cols=2, hold_top=False):
+    return jersey_fabric(Jersey(rows, cols), hold_top=hold_top)
+
+
+def models(comm, fabric, material=None, lod=(5, 5)):
+    """(full, reduced) models of a fabric; the volume is a box around it."""
+    full = FullModel(comm, fabric, material or Material())
+    volume = BoundingVolume.around(fabric.X.reshape(-1, 3), *lod, margin=fabric.radius)
+    return full, ReducedModel(full, Embedding(comm, full.layout, fabric, volume))
+
+
+def gather(comm, vec):
+    """The whole vector on every rank, as a numpy array."""
+    return np.concatenate(comm.tompi4py().allgather(vec.getArray(readonly=True)))
+
+
+def run(system, integrator_cls, dt, nsteps, v0=None):
+    """Integrate from rest (or from the velocity v0, a numpy array of all
+    coordinates); returns the integrator, the final state and velocity Vecs."""
+    integ = integrator_cls(system, dt)
+    x, v = system.rest_state(), system.rest_state()
+    v.zeroEntries()
+    if v0 is not None:
+        lo, hi = v.getOwnershipRange()
+        v.getArray()[:] = v0[lo:hi]
+    for n in range(nsteps):
+        integ.step(n * dt, x, v)
+    return integ, x, v
+
+
+COMM = PETSc.COMM_WORLD
