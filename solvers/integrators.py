@@ -150,7 +150,7 @@ class BackwardEuler:
         self.snes.setConvergenceTest(step_convergence(
             self.saddle, lambda: 1e-9 * system.fabric.radius / self.h))
         _default(prefix, "snes_linesearch_type", "basic")
-        self.snes.setTolerances(rtol=1e-8, atol=1e-50, max_it=25)
+        self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         ksp = saddle_ksp(self.saddle, prefix)
         self.snes.setKSP(ksp)
         self.snes.setFromOptions()
