@@ -9,7 +9,7 @@ from petsc4py import PETSc
 from .options import KnitError, KnitOptions
 from .pattern import Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
-__all__ = ["dofs", "pattern", "run"]
+__all__ = ["dofs", "pattern", "run", "deform"]
 
 
 def jersey_from_options(opts, rows=7, cols=7):
@@ -232,3 +232,67 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
                 title=f"{scene}, static equilibrium ({system.kind} model)")
     PETSc.Sys.Print(f"static equilibrium in {its} Newton iterations; tip "
                     f"{np.round(rec['tip'], 6).tolist()}, sag {rec['sag']:.4g} m")
+
+
+def fitting_metrics(fabric, P, nq=4):
+    """Quality of the stitches fitting for deformed control points P.
+
+    max and RMS Green–Lagrange axial strain, the smallest centreline distance
+    between different yarns over 2r (penetration when < 1) and the largest
+    contact residual |P_f(s_a) − P_g(s_b) − d_ab| over r.
+    """
+    from . import constraints as cons
+    from .yarn import YarnElements
+
+    nseg = fabric.ncp - 3
+    conn = (np.arange(fabric.nyarn)[:, None, None] * fabric.ncp
+            + np.arange(nseg)[None, :, None] + np.arange(4)).reshape(-1, 4)
+    el = YarnElements(fabric.X.reshape(-1, 3), conn, 1.0, 1.0, 0.0, nq=nq)
+    e = el.strain(P.reshape(-1, 3))
+    dist = min_yarn_distance(list(P), 16)[0]
+    c = cons.build(fabric)
+    res = np.linalg.norm(c.residual(P.reshape(-1, 3))[c.kind == "contact"], axis=1)
+    return dict(max_strain=float(np.abs(e).max()),
+                rms_strain=float(np.sqrt(np.mean(e**2))),
+                min_distance_over_2r=float(dist / (2 * fabric.radius)),
+                penetration=bool(dist < 2 * fabric.radius),
+                max_contact_residual_over_r=float(res.max() / fabric.radius)
+                if res.size else 0.0)
+
+
+def deform(comm):
+    """Move the bounding volume's control points; rebuild the yarns through Γ."""
+    from . import io
+    from .volume import DEFAULT_AMOUNTS, MODES, BoundingVolume
+
+    opts = KnitOptions()
+    jersey = jersey_from_options(opts, 15, 30)
+    mode = opts.getChoice("mode", "flexion", MODES, "imposed deformation")
+    amount = opts.getReal("amount", DEFAULT_AMOUNTS[mode], "amount: degrees "
+                          "(flexion, shear, torsion) or stretch ratio (traction)")
+    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
+    out = output_dir(f"out/deform_{mode}")
+    opts.printHelp("knitfem deform")
+    if comm.rank:
+        return
+    fabric = jersey_fabric(jersey)
+    volume = BoundingVolume.around(fabric.X.reshape(-1, 3), *lod, margin=jersey.radius)
+    params = volume.embed(fabric.X.reshape(-1, 3))
+    try:
+        moved = volume.deformed(mode, amount)
+    except ValueError as err:
+        raise KnitError(f"-knit_mode {mode} -knit_amount {amount:g}: {err}") from None
+    cols, vals = moved.weights(*params)
+    P = np.einsum("na,nai->ni", vals, moved.flat[cols]).reshape(fabric.X.shape)
+    rec = dict(mode=mode, amount=amount, lod=list(lod), rows=jersey.rows,
+               cols=jersey.cols, **fitting_metrics(fabric, P))
+    base = os.path.join(out, f"{mode}")
+    io.write_centrelines(base + ".vtu", P, jersey.radius)
+    moved.save(base + "_volume.vtu")
+    view = "side" if mode in ("flexion", "torsion") else "front"
+    io.draw(base + ".png", P, jersey.radius, view=view,
+            title=f"{mode} {amount:g}: max strain {rec['max_strain']:.3f}, "
+                  f"min distance {rec['min_distance_over_2r']:.2f} x 2r")
+    with open(os.path.join(out, "metrics.json"), "w") as f:
+        json.dump(rec, f, indent=1)
+    PETSc.Sys.Print(json.dumps(rec))

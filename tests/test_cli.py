@@ -64,3 +64,18 @@ def test_pattern_writes_geometry_and_picture(tmp_path):
     mesh = meshio.read(tmp_path / "jersey_3x3.vtu")
     assert "radius" in mesh.point_data and len(mesh.cells_dict["line"]) > 0
     assert (tmp_path / "jersey_3x3.png").stat().st_size > 10000
+
+
+def test_deform_metrics(tmp_path):
+    def metrics(amount):
+        p = knitfem("deform", "-knit_mode", "traction", "-knit_amount", amount,
+                    "-knit_rows", "3", "-knit_cols", "3", "-o", str(tmp_path))
+        assert p.returncode == 0, p.stderr
+        return json.loads((tmp_path / "metrics.json").read_text())
+
+    rest = metrics("1.0")               # identity: the fitting is exact
+    assert rest["max_strain"] < 1e-12 and rest["max_contact_residual_over_r"] < 1e-10
+    assert not rest["penetration"]
+    pulled = metrics("1.2")             # 20 % along the courses
+    assert 0.1 < pulled["max_strain"] < 0.25
+    assert (tmp_path / "traction.png").exists()
