@@ -1,6 +1,7 @@
 """Small builders shared by the tests (no assertions here)."""
 
 import numpy as np
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 from knitfem.model import FullModel, Material
@@ -40,3 +41,10 @@ def run(system, integrator_cls, dt, nsteps, v0=None):
 
 
 COMM = PETSc.COMM_WORLD
+
+
+def to_scipy(A):
+    """The local rows of a PETSc AIJ matrix as a scipy CSR matrix."""
+    indptr, indices, values = A.getValuesCSR()
+    return sp.csr_matrix((values, indices, indptr),
+                         shape=(len(indptr) - 1, A.getSize()[1]))

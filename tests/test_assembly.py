@@ -2,20 +2,15 @@
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 from petsc4py import PETSc
 
+from helpers import to_scipy
 from knitfem import bspline
 from knitfem.fabric import Fabric
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric
 
 COMM = PETSc.COMM_SELF
-
-
-def to_scipy(A):
-    indptr, indices, values = A.getValuesCSR()
-    return sp.csr_matrix((values, indices, indptr), shape=A.getSize())
 
 
 @pytest.fixture(scope="module")

@@ -2,19 +2,13 @@
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 from petsc4py import PETSc
 
-from helpers import COMM, gather, jersey, models, run
+from helpers import COMM, gather, jersey, models, run, to_scipy
 from knitfem.model import Material
 from solvers.integrators import BackwardEuler, SymplecticEuler
 
 SELF = PETSc.COMM_SELF
-
-
-def to_scipy(A):
-    indptr, indices, values = A.getValuesCSR()
-    return sp.csr_matrix((values, indices, indptr), shape=A.getSize())
 
 
 @pytest.fixture(scope="module")
