@@ -133,6 +133,10 @@ def build_system(comm, opts, fabric, material):
         stage.pop()
 
 
+VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
+         "cantilever": "front"}
+
+
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
     from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
@@ -149,6 +153,8 @@ def run(comm):
                         positive=True)
     nseg = opts.getInt("segments", 40, "segments of the single yarn (catenary, "
                        "cantilever)", 1)
+    tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
+                        "held course (hanging: 90 horizontal, 0 hanging)")
     material = material_from_options(opts)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
@@ -171,7 +177,7 @@ def run(comm):
                         "times in seconds") from None
     out = output_dir(f"out/{scene}")
     try:
-        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius)
+        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt)
     except ValueError as err:
         raise KnitError(str(err)) from None
     system = build_system(comm, opts, fabric, material)
@@ -184,7 +190,8 @@ def run(comm):
     with PETSc.Log.Stage("Set-up"):
         integrator = INTEGRATORS[method](system, dt)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
-                     snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt)
+                     snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
+                     view=VIEWS[scene])
     if restart:
         sim.restart(restart)
     try:

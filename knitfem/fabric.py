@@ -6,7 +6,7 @@ hold the knit together, and the world constraints (fixed points, clamped
 tangents). Models (full or reduced) are built from it.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,6 +27,9 @@ class Fabric:
     fixed : (yarn, s) — P_f(s) = x₀.
     clamped : (yarn, s) — P_f'(s) = X_f'(s) (position and direction held when
         combined with a fixed point at the same s).
+    frame : (3, 3) rotation whose columns are the pattern's course, wale and
+        thickness directions in the world (identity unless the scene turned
+        the fabric); bounding volumes are boxes along these axes.
     """
 
     X: np.ndarray
@@ -35,6 +38,7 @@ class Fabric:
                                                     np.zeros(0, int), np.zeros(0)))
     fixed: tuple = field(default_factory=_empty_points)
     clamped: tuple = field(default_factory=_empty_points)
+    frame: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     @property
     def nyarn(self):
@@ -43,3 +47,8 @@ class Fabric:
     @property
     def ncp(self):
         return self.X.shape[1]
+
+    def rotated(self, R, centre):
+        """The same fabric turned rigidly by the rotation R about ``centre``."""
+        X = (self.X - centre) @ np.asarray(R).T + centre
+        return replace(self, X=X, frame=np.asarray(R) @ self.frame)

@@ -17,7 +17,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-__all__ = ["centrelines", "write_centrelines", "CentrelineSeries", "draw"]
+__all__ = ["centrelines", "write_centrelines", "CentrelineSeries", "draw",
+           "draw_panels", "VIEWS"]
 
 SAMPLES = 6
 
@@ -111,42 +112,89 @@ class CentrelineSeries:
         self.h5.close()
 
 
-def draw(path, P, radius, title="", view="front", extent=None):
-    """A PNG of the fabric, yarns as tubes drawn back to front.
+def _camera(azimuth, elevation):
+    """Rows: the screen's right, up and towards-the-viewer axes in world
+    coordinates, for a camera turned by ``azimuth`` about y then tilted by
+    ``elevation`` (degrees) from the front view (looking along −z)."""
+    a, e = np.radians(azimuth), np.radians(elevation)
+    Ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    Rx = np.array([[1, 0, 0], [0, np.cos(e), -np.sin(e)], [0, np.sin(e), np.cos(e)]])
+    return Rx @ Ry
 
-    view "front" looks along −z (x right, y up); "side" along x (z right).
-    Segments are sorted by depth (painter's algorithm) and shaded by it.
-    """
-    pts = centrelines(P, samples=8)
+
+VIEWS = {"front": _camera(0, 0), "side": _camera(90, 0),
+         "oblique": _camera(-35, 20)}
+
+
+def _draw_on(ax, P, radius, view, extent):
+    """Yarns P as shaded tubes on ``ax``, back to front (painter's algorithm).
+
+    ``extent`` (lo, hi) is a world box kept in view (default: P's own)."""
+    cam = VIEWS[view]
+    pts = centrelines(P, samples=8) @ cam.T
     nyarn, m = pts.shape[:2]
     seg = np.stack([pts[:, :-1], pts[:, 1:]], axis=2).reshape(-1, 2, 3)
     yarn = np.repeat(np.arange(nyarn), m - 1)
-    h, v, depth = (0, 1, 2) if view == "front" else (2, 1, 0)
-    z = seg[:, :, depth].mean(axis=1)
-    order = np.argsort(z)
-    lo, hi = (seg.reshape(-1, 3).min(0), seg.reshape(-1, 3).max(0)) \
-        if extent is None else extent
-    pad = 2 * radius
-    width = hi[h] - lo[h] + 2 * pad
-    height = hi[v] - lo[v] + 2 * pad
-    fig_w = 8.0
-    fig_h = max(2.0, min(12.0, fig_w * height / width))
-    fig, ax = plt.subplots(figsize=(fig_w, fig_h), dpi=110)
-    ax.set_xlim(lo[h] - pad, hi[h] + pad)
-    ax.set_ylim(lo[v] - pad, hi[v] + pad)
+    depth = seg[:, :, 2].mean(axis=1)
+    order = np.argsort(depth)
+    if extent is None:
+        box = seg.reshape(-1, 3)
+    else:
+        corners = np.array(np.meshgrid(*zip(*extent), indexing="ij")).reshape(3, -1).T
+        box = corners @ cam.T
+    lo, hi, pad = box.min(0), box.max(0), 2 * radius
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
-    fig.tight_layout()
     scale = ax.transData.transform([(2 * radius, 0)])[0, 0] \
         - ax.transData.transform([(0, 0)])[0, 0]
-    lw = max(0.5, scale * 72 / fig.dpi)
-    shade = 0.55 + 0.45 * (z - z.min()) / (np.ptp(z) + 1e-300)
+    lw = max(0.5, scale * 72 / ax.figure.dpi)
+    shade = 0.55 + 0.45 * (depth - depth.min()) / (np.ptp(depth) + 1e-300)
     colours = plt.cm.tab10(yarn % 10)[:, :3] * shade[:, None]
-    for width_, c in ((lw * 1.15, np.zeros_like(colours)), (lw, colours)):
-        ax.add_collection(LineCollection(seg[order][:, :, [h, v]], linewidths=width_,
+    for width, c in ((lw * 1.15, np.zeros_like(colours)), (lw, colours)):
+        ax.add_collection(LineCollection(seg[order][:, :, :2], linewidths=width,
                                          colors=c[order], capstyle="round"))
-    ax.set_title(title)
-    ax.set_xlabel("xzy"[h] + " [m]")
-    ax.set_ylabel("y [m]")
+    if view == "front":
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    elif view == "side":
+        ax.set_xlabel("z [m]")
+        ax.set_ylabel("y [m]")
+    else:
+        ax.set_xticks([])
+        ax.set_yticks([])
+
+
+def _save(fig, path):
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
+
+
+def draw(path, P, radius, title="", view="front", extent=None):
+    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS)."""
+    lo, hi = (np.asarray(P).reshape(-1, 3).min(0), np.asarray(P).reshape(-1, 3).max(0)) \
+        if extent is None else extent
+    box = np.array([lo, hi]) @ VIEWS[view].T
+    width, height = np.abs(box[1, :2] - box[0, :2]) + 4 * radius
+    fig, ax = plt.subplots(figsize=(8.0, max(2.0, min(12.0, 8.0 * height / width))),
+                           dpi=110)
+    fig.tight_layout()
+    _draw_on(ax, P, radius, view, extent)
+    ax.set_title(title)
+    _save(fig, path)
+
+
+def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
+    """One PNG with the fabrics ``frames`` side by side, in one common view
+    and scale (e.g. the snapshots of a run, as the paper's Figures 10–13)."""
+    if extent is None:
+        flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
+        extent = (flat.min(0), flat.max(0))
+    fig, axes = plt.subplots(1, len(frames), figsize=(3.2 * len(frames), 3.6),
+                             dpi=110, squeeze=False)
+    for ax, P, title in zip(axes[0], frames, titles):
+        _draw_on(ax, P, radius, view, extent)
+        ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)

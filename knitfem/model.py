@@ -37,9 +37,9 @@ class Material:
     Q_d = −c_d M ε̇.
     """
 
-    rho: float = 3.0e-5
-    EA: float = 20.0
-    EI: float = 2.0e-7
+    rho: float = 2.5e-4
+    EA: float = 250.0
+    EI: float = 1.5e-8
     gravity: float = 9.81
     damping: float = 0.0
 

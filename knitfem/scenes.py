@@ -3,7 +3,10 @@
 Axes: x along the courses, y along the wales and up, z through the
 thickness; gravity acts along −y.
 
-hanging     r × nc jersey, the top course held at its nc loop heads.
+hanging     r × nc jersey, the top course held at its nc loop heads; the
+            fabric starts turned by ``tilt`` degrees about the line of the
+            held heads (90: horizontal, so it falls and swings down to hang;
+            0: already hanging, it only settles under its weight).
 freefall    r × nc jersey, no world constraints.
 catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
             rest a circular arc of length L sagging in −y (stress free).
@@ -13,6 +16,7 @@ cantilever  one straight yarn of length L along +x, clamped at the origin.
 import numpy as np
 from scipy.optimize import brentq
 
+from . import bspline
 from .fabric import Fabric
 from .pattern import jersey_fabric
 
@@ -55,10 +59,24 @@ def arc_yarn(length, span, nseg):
     return interpolating_control_points(pts)
 
 
-def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4):
+def tilted(fabric, degrees):
+    """``fabric`` turned by ``degrees`` about the x-parallel line through its
+    fixed points: R = R_x(θ) turns +y towards −z, so the fabric hanging below
+    the held course is lifted out to +z (horizontal at θ = 90°)."""
+    theta = np.radians(degrees)
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+    yarn, s_fixed = fabric.fixed
+    held = np.stack([bspline.curve_points(fabric.X[f], np.atleast_1d(t))[0]
+                     for f, t in zip(yarn, s_fixed)])
+    return fabric.rotated(R, held.mean(axis=0))
+
+
+def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4,
+                tilt=0.0):
     """The ``Fabric`` of a scene."""
     if scene == "hanging":
-        return jersey_fabric(jersey, hold_top=True)
+        return tilted(jersey_fabric(jersey, hold_top=True), tilt)
     if scene == "freefall":
         return jersey_fabric(jersey)
     if scene == "catenary":

@@ -36,11 +36,12 @@ class Simulation:
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
-                 snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True):
+                 snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
+                 view="oblique"):
         self.system, self.integrator, self.out, self.scene = system, integrator, out, scene
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
-        self.verbose = verbose
+        self.verbose, self.view = verbose, view
         self.comm = system.comm
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
@@ -57,6 +58,7 @@ class Simulation:
         self.rf = self.full.C.createVecLeft()
         self.Mv = system.M.createVecLeft()
         self.initial_lowest = None
+        self.frames = []
 
     # -- measures ------------------------------------------------------------
     def centroid(self, eps):
@@ -97,18 +99,33 @@ class Simulation:
         return os.path.join(self.out, name)
 
     def write_output(self, P, pts):
+        """A frame of the XDMF series, and the snapshots now due (every rank
+        drops them from its list; rank 0 writes)."""
+        due = []
+        while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
+            due.append(self.snapshots.pop(0))
         if self.out is None or self.comm.rank:
             return
         if self.series is None:
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
                                               self.full.fabric.radius)
         self.series.write(self.t, P)
-        while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
-            ts = self.snapshots.pop(0)
+        for ts in due:
+            self.frames.append((f"t = {ts:g} s", P))
             io.draw(self._path(f"{self.scene}_t{ts:g}s.png"), P,
-                    self.full.fabric.radius,
+                    self.full.fabric.radius, view=self.view,
                     title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s",
                     extent=self.extent)
+
+    def write_panels(self):
+        """The snapshots of this run side by side in one PNG (rank 0)."""
+        if self.out is None or self.comm.rank or not self.frames:
+            return
+        titles, frames = zip(*self.frames)
+        io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
+                       self.full.fabric.radius, titles, view=self.view,
+                       extent=self.extent)
+        self.frames = []
 
     def checkpoint(self):
         """HDF5 checkpoint of everything needed to continue bit-exactly."""
@@ -174,11 +191,11 @@ class Simulation:
         start = time.perf_counter()
         P, pts = self.geometry()
         if self.comm.rank == 0:
+            # room for the rest shape to swing or sag down by its own size
             lo, hi = pts.reshape(-1, 3).min(0), pts.reshape(-1, 3).max(0)
-            span = hi - lo
-            self.extent = (lo - 0.6 * span, hi + 0.1 * span)
-            self.extent[0][0], self.extent[1][0] = lo[0] - 0.15 * span[0], \
-                hi[0] + 0.15 * span[0]
+            span, size = hi - lo, (hi - lo).max()
+            self.extent = (lo - [0.15 * span[0], size, 0.2 * size],
+                           hi + [0.15 * span[0], 0.1 * size, 0.2 * size])
             if self.initial_lowest is None:
                 self.initial_lowest = pts[..., 1].min()
         if self.step_count == 0:
@@ -196,7 +213,8 @@ class Simulation:
                 for k in st:
                     self.stats[k] += st[k]
                 last = self.step_count == int(round(t_end / dt))
-                if self.step_count % self.output_every == 0 or last:
+                snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
+                if self.step_count % self.output_every == 0 or last or snap:
                     m = self.measures()
                     self.check(m)
                     self.progress(m)
@@ -236,6 +254,7 @@ class Simulation:
         return self.comm.tompi4py().bcast(rec, root=0)
 
     def close(self):
+        self.write_panels()
         if self.series is not None:
             self.series.close()
             self.series = None

@@ -89,8 +89,11 @@ class BoundingVolume:
         return cls(q.reshape(2, n2, n1, 3))
 
     @classmethod
-    def around(cls, points, n1=5, n2=5, margin=0.0):
+    def around(cls, points, n1=5, n2=5, margin=0.0, frame=None):
         """Box volume enclosing ``points`` (N, 3), with an exactly affine map.
+
+        The box is aligned with the columns of the rotation ``frame``
+        (default: the world axes); below, x, y, z are coordinates along them.
 
         The box is [x_min − m, x_max + m] × [y_min − m, y_max + m] ×
         [z_min − m, z_max + m]; S₁ is its bottom face, S₂ its top face. Along
@@ -101,7 +104,8 @@ class BoundingVolume:
         (likewise y), so the spline is linear and s₁ ∈ [0, n1 − 3] maps onto
         [x_lo, x_hi]: the value at s = 0 is (x_0 + 4x_1 + x_2)/6 = x_1 = x_lo.
         """
-        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        R = np.eye(3) if frame is None else np.asarray(frame, dtype=float)
+        pts = np.asarray(points, dtype=float).reshape(-1, 3) @ R
         if len(pts) == 0 or margin < 0:
             raise ValueError("around() needs at least one point and margin >= 0")
         lo, hi = pts.min(0) - margin, pts.max(0) + margin
@@ -113,7 +117,7 @@ class BoundingVolume:
         y = lo[1] + (np.arange(n2) - 1) * (hi[1] - lo[1]) / (n2 - 3)
         z = np.array([lo[2], hi[2]])
         Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-        return cls(np.stack([X, Y, Z], axis=-1))
+        return cls(np.stack([X, Y, Z], axis=-1) @ R.T)
 
     @property
     def size(self):

@@ -76,9 +76,13 @@ def test_world_constraints_reduced_to_independent_rows(pair):
 @pytest.mark.parametrize("integrator,dt,tol", [(SymplecticEuler, 5e-7, 1e-10),
                                                (BackwardEuler, 1e-3, 1e-8)])
 def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol):
-    """A motion in range(Γ) is reproduced exactly by the reduced model."""
-    fab = jersey(2, 2)
-    full, red = models(COMM, fab, Material(EA=5.0, EI=1e-6))
+    """A motion in range(Γ) is reproduced exactly by the reduced model.
+
+    Γ must have full column rank (ΓᵀMΓ invertible): a 4×4×2 volume around
+    a 3×3 jersey; a 5×5×2 one around 2×2 has more control points than the
+    yarns determine, and round-off then grows in the null space."""
+    fab = jersey(3, 3)
+    full, red = models(COMM, fab, Material(EA=5.0, EI=1e-6), lod=(4, 4))
     n = 3 * fab.nyarn * fab.ncp
     v0 = np.tile([0.01, 0.02, -0.005], n // 3)              # rigid translation
     _, xf, vf = run(full, integrator, dt, 15, v0)
