@@ -121,7 +121,7 @@ def build_system(comm, opts, fabric, material):
 
     kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
-    stage = PETSc.Log.Stage("Set-up")
+    stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
         full = FullModel(comm, fabric, material, nq=nq)
@@ -187,7 +187,7 @@ def run(comm):
                     f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
     if static:
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
-    with PETSc.Log.Stage("Set-up"):
+    with PETSc.Log.Stage("Solver set-up"):
         integrator = INTEGRATORS[method](system, dt)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,

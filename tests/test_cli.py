@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -79,3 +80,21 @@ def test_deform_metrics(tmp_path):
     pulled = metrics("1.2")             # 20 % along the courses
     assert 0.1 < pulled["max_strain"] < 0.25
     assert (tmp_path / "traction.png").exists()
+
+
+def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
+    p = knitfem("run", "-knit_scene", "hanging", "-knit_rows", "2", "-knit_cols", "2",
+                "-knit_t_end", "0.04", "-knit_snapshots", "0.02,0.04", "-o",
+                str(tmp_path), "-log_view")
+    assert p.returncode == 0, p.stderr
+    stages = re.findall(r"^\s*\d+:\s+([^:]+):", p.stdout, flags=re.M)
+    assert {"Model set-up", "Solver set-up", "Time stepping"} <= set(stages)
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    for key in ("scene", "model", "steps", "t_end", "wall_time_s", "unknowns",
+                "centroid", "lowest_point", "kinetic_energy", "elastic_energy",
+                "max_constraint_violation", "max_strain"):
+        assert key in rec
+    assert rec["steps"] == 4 and rec["sag"] > 0     # the tilted swatch falls
+    for name in ("hanging_t0.02s.png", "hanging_t0.04s.png", "hanging_snapshots.png",
+                 "yarns.xdmf", "yarns.h5"):
+        assert (tmp_path / name).stat().st_size > 0
