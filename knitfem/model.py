@@ -145,12 +145,18 @@ class FullModel:
             q = Q.getArray()
             q -= g.ravel()
 
-    def stiffness(self, x):
-        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused)."""
+    def stiffness_values(self, x):
+        """Values of K = ∂²E/∂ε² in the local CSR pattern (indptr3, indices3):
+        K = Σ_e K_e, summed by one ``np.bincount`` over the pattern slots."""
         with EV_TANGENT:
             H = self.elements.element_hessian(self.yarn_points(x))
-            values = np.bincount(self.slot3.ravel(), weights=H.ravel(),
-                                 minlength=len(self.indices3))
+            return np.bincount(self.slot3.ravel(), weights=H.ravel(),
+                               minlength=len(self.indices3))
+
+    def stiffness(self, x):
+        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused)."""
+        values = self.stiffness_values(x)
+        with EV_ASSEMBLY:
             if self.K is None:
                 n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
                 self.K = create_aij(self.comm, (n, N), (n, N),

@@ -6,14 +6,17 @@ equations in α are
 
     M^V α̈ = Q^V + (CΓ)ᵀλ,   (CΓ) α = d,   M^V = Γᵀ M Γ,   Q^V = Γᵀ Q(Γα, Γα̇),
 
-M^V formed once by PETSc's PtAP, the tangent Γᵀ K Γ by PtAP with the
-symbolic product reused. Contacts are dropped (the embedding keeps the
+M^V formed once by PETSc's PtAP. The tangent Γᵀ K Γ is formed densely
+(``DenseTangent``) while the volume has at most ``DENSE_LIMIT`` control
+points — Γ̃ is then nearly dense and BLAS beats a sparse product — and by
+PtAP, the symbolic product reused, beyond. Contacts are dropped (the embedding keeps the
 stitches together); fixed points and clamps stay, reduced to an independent
 set of rows (a rank-revealing SVD of cΓ̃), because several fixed points can
 say the same thing about α.
 """
 
 import numpy as np
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .assembly import create_aij, kron_identity
@@ -24,6 +27,9 @@ __all__ = ["Embedding", "ReducedModel", "embedding_from_options"]
 
 EV_EMBED = PETSc.Log.Event("knitEmbedding")
 EV_PTAP = PETSc.Log.Event("knitPtAP")
+
+
+DENSE_LIMIT = 200
 
 
 def even_split(comm, n):
@@ -49,6 +55,7 @@ class Embedding:
         order = np.argsort(cols, axis=1)
         cols = np.take_along_axis(cols, order, 1)
         vals = np.take_along_axis(vals, order, 1)
+        self.cols, self.vals = cols, vals
         n, N = layout.ncp_local, layout.ncp
         nv, NV = even_split(comm, volume.size), volume.size
         csr = (np.arange(0, cols.size + 1, cols.shape[1]), cols.ravel(), vals.ravel())
@@ -58,9 +65,48 @@ class Embedding:
         self.Gamma_scalar.setOptionsPrefix("reduced_Gammascalar_")
         self.Gamma.setOptionsPrefix("reduced_Gamma_")
 
+    def scalar_dense(self):
+        """The local rows of Γ̃ as a dense (local control points, n) array."""
+        G = np.zeros((len(self.cols), self.volume.size))
+        np.put_along_axis(G, self.cols, self.vals, axis=1)
+        return G
+
     def destroy(self):
         self.Gamma.destroy()
         self.Gamma_scalar.destroy()
+
+
+class DenseTangent:
+    """Γᵀ K Γ as a dense (3n, 3n) array from the values of K (local rows).
+
+    With Γ = Γ̃ ⊗ I₃ and K in 3×3 blocks K_pq,
+
+        (Γᵀ K Γ)_{(b,i),(c,j)} = Σ_p Γ̃_pb Y_{(p,i),(c,j)},   Y_{·,(c,j)} = K_{·,j} Γ̃_{·c},
+
+    where K_{·,j} holds the columns of K for component j: three sparse ×
+    dense products and one dense product Γ̃ᵀ Y. K couples no two yarns, so
+    every rank forms the sum over its own yarns.
+    """
+
+    def __init__(self, full, embedding):
+        lo = 3 * full.layout.cp_start
+        n3 = len(full.indptr3) - 1
+        slot = sp.csr_matrix((np.arange(1, len(full.indices3) + 1), full.indices3 - lo,
+                              full.indptr3), shape=(n3, n3))
+        self.columns = []
+        for j in range(3):
+            Kj = slot[:, j::3].tocsr()
+            self.columns.append((Kj.indptr, Kj.indices, Kj.data - 1))
+        self.G = embedding.scalar_dense()
+        self.n3 = n3
+
+    def __call__(self, values):
+        n, nv = self.G.shape
+        Y = np.empty((n, 3, nv, 3))
+        for j, (indptr, indices, slots) in enumerate(self.columns):
+            Kj = sp.csr_matrix((values[slots], indices, indptr), shape=(self.n3, n))
+            Y[..., j] = (Kj @ self.G).reshape(n, 3, nv)
+        return (self.G.T @ Y.reshape(n, -1)).reshape(3 * nv, 3 * nv)
 
 
 def embedding_from_options(opts, comm, fabric, layout=None):
@@ -108,6 +154,8 @@ class ReducedModel:
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.Qfull = G.createVecLeft()
         self.K = None
+        self.dense = (DenseTangent(full, embedding)
+                      if embedding.volume.size <= DENSE_LIMIT else None)
 
     def _world_constraints(self):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""
@@ -175,14 +223,37 @@ class ReducedModel:
         G.multTranspose(self.Qfull, Q)
 
     def stiffness(self, alpha):
-        """Γᵀ K(Γα) Γ by PtAP, reusing the symbolic product."""
-        K = self.full.stiffness(self.full_state(alpha, self.eps))
+        """Γᵀ K(Γα) Γ: dense (``DenseTangent``) or by PtAP, reusing the
+        symbolic product."""
+        x = self.full_state(alpha, self.eps)
+        if self.dense is not None:
+            return self._dense_stiffness(x)
+        K = self.full.stiffness(x)
         with EV_PTAP:
             if self.K is None:
                 self.K = K.PtAP(self.embedding.Gamma)
                 self.K.setBlockSize(3)
             else:
                 K.PtAP(self.embedding.Gamma, self.K)
+        return self.K
+
+    def _dense_stiffness(self, x):
+        """Γᵀ K Γ summed from every rank's yarns into a dense-pattern AIJ."""
+        values = self.full.stiffness_values(x)
+        with EV_PTAP:
+            R = self.dense(values)
+            if self.K is None:
+                N = R.shape[0]
+                lo, hi = self.M.getOwnershipRange()
+                indptr = np.arange(hi - lo + 1) * N
+                indices = np.tile(np.arange(N), hi - lo)
+                self.K = create_aij(self.comm, (hi - lo, N), (hi - lo, N),
+                                    (indptr, indices, np.zeros(len(indices))),
+                                    bsize=3)
+                self.all = np.arange(N, dtype=PETSc.IntType)
+            self.K.zeroEntries()
+            self.K.setValues(self.all, self.all, R, addv=PETSc.InsertMode.ADD_VALUES)
+            self.K.assemble()
         return self.K
 
     def project(self, eps, alpha):

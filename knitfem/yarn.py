@@ -118,6 +118,11 @@ def stretch_terms(y, Xp2, W, EA, hessian=True):
     return EA * W * e, EA * W, g, H
 
 
+def _outer(a, b):
+    """a bᵀ at every point: (…, 3), (…, 3) → (…, 3, 3)."""
+    return a[..., :, None] * b[..., None, :]
+
+
 def bend_terms(y, kappa0, W, EI, delta, hessian=True):
     """Bending: ε = c = κ² = A/B³, ψ = ½ EI (√c − κ₀)², with u = x', v = x'',
 
@@ -169,21 +174,20 @@ def bend_terms(y, kappa0, W, EI, delta, hessian=True):
     eye = np.eye(3)
     vv = np.einsum("eqi,eqi->eq", v, v)[..., None, None]
     uv = np.einsum("eqi,eqi->eq", u, v)[..., None, None]
-    Huv = (4.0 * np.einsum("eqi,eqj->eqij", u, v)
-           - 2.0 * np.einsum("eqi,eqj->eqij", v, u) - 2.0 * uv * eye)
+    u_v = _outer(u, v)
+    Huv = 4.0 * u_v - 2.0 * u_v.swapaxes(-1, -2) - 2.0 * uv * eye
     H = np.empty(y.shape + (2, 3))
-    H[:, :, 0, :, 0, :] = 2.0 * vv * eye - 2.0 * np.einsum("eqi,eqj->eqij", v, v)
-    H[:, :, 1, :, 1, :] = (2.0 * B[..., None, None] * eye
-                           - 2.0 * np.einsum("eqi,eqj->eqij", u, u))
+    H[:, :, 0, :, 0, :] = 2.0 * vv * eye - 2.0 * _outer(v, v)
+    H[:, :, 1, :, 1, :] = 2.0 * B[..., None, None] * eye - 2.0 * _outer(u, u)
     H[:, :, 0, :, 1, :] = Huv
-    H[:, :, 1, :, 0, :] = Huv.transpose(0, 1, 3, 2)
+    H[:, :, 1, :, 0, :] = Huv.swapaxes(-1, -2)
     H *= (1.0 / B**3)[..., None, None, None, None]
     # −3B⁻⁴(A'B'ᵀ + B'A'ᵀ) with B' = (2u, 0)
-    t = np.einsum("eq,eqri,eqj->eqrij", 6.0 / B**4, dA, u)
+    t = (6.0 / B**4)[..., None, None, None] * dA[..., None] * u[:, :, None, None, :]
     H[:, :, :, :, 0, :] -= t
     H[:, :, 0, :, :, :] -= t.transpose(0, 1, 4, 2, 3)
     # 12AB⁻⁵B'B'ᵀ − 3AB⁻⁴B'' with B'' = diag(2I, 0)
-    H[:, :, 0, :, 0, :] += (np.einsum("eq,eqi,eqj->eqij", 48.0 * A / B**5, u, u)
+    H[:, :, 0, :, 0, :] += ((48.0 * A / B**5)[..., None, None] * _outer(u, u)
                             - (6.0 * A / B**4)[..., None, None] * eye)
     return f1, f2, g, H
 

@@ -84,3 +84,19 @@ def test_run_equals_serial(kind):
         full = sp.csr_matrix((values, indices, indptr), shape=ser.M.getSize())
         err = abs(mine - full[lo:hi]).max() if hi > lo else 0.0
         assert par.comm.tompi4py().allreduce(err, op=max) <= 1e-14 * abs(full).max()
+
+
+def test_reduced_tangent_equals_serial():
+    """The dense Γᵀ K Γ, summed over the ranks' yarns, equals one rank's."""
+    from helpers import models
+
+    fab = jersey_fabric(Jersey(5, 3), hold_top=True)
+    (_, par), (_, ser) = models(PETSc.COMM_WORLD, fab), models(PETSc.COMM_SELF, fab)
+    assert par.dense is not None
+    a_par, a_ser = par.rest_state(), ser.rest_state()
+    a_ser.getArray()[:] *= 1.01
+    lo, hi = a_par.getOwnershipRange()
+    a_par.getArray()[:] = a_ser.getArray()[lo:hi]
+    ok = par.comm.tompi4py().allreduce(
+        local_rows_equal(par.stiffness(a_par), ser.stiffness(a_ser)), op=min)
+    assert ok

@@ -31,6 +31,24 @@ def test_ptap_equals_explicit_product(pair):
     assert np.array_equal(G.toarray(), np.kron(Gs.toarray(), np.eye(3)))
 
 
+@pytest.mark.parametrize("dense", [True, False])
+def test_reduced_tangent_equals_explicit_product(pair, dense):
+    """Γᵀ K Γ, dense (DenseTangent) or by PtAP, at a deformed state."""
+    full, red = pair
+    alpha = red.rest_state()
+    alpha.getArray()[:] += 1e-4 * np.random.default_rng(1).standard_normal(
+        alpha.getLocalSize())
+    eps = red.full_state(alpha)
+    G = to_scipy(red.embedding.Gamma)
+    ref = (G.T @ to_scipy(full.stiffness(eps)) @ G).toarray()
+    saved, red.K = (red.dense, red.K), None
+    if not dense:
+        red.dense = None
+    K = to_scipy(red.stiffness(alpha)).toarray()
+    red.dense, red.K = saved
+    assert np.allclose(K, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+
+
 def test_total_mass_kept(pair):
     full, red = pair
     assert to_scipy(red.m).sum() == pytest.approx(to_scipy(full.m).sum(), rel=1e-13)
