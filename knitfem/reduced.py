@@ -156,6 +156,8 @@ class ReducedModel:
         self.K = None
         self.dense = (DenseTangent(full, embedding)
                       if embedding.volume.size <= DENSE_LIMIT else None)
+        # the integrators' Newton matrices, too, are dense on one rank
+        self.dense_saddle = self.dense is not None and self.comm.size == 1
 
     def _world_constraints(self):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""

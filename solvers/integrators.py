@@ -139,7 +139,8 @@ class BackwardEuler:
         K = system.stiffness(system.rest_state())
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle = SaddlePoint(self.A, system.C)
+        self.saddle = SaddlePoint(self.A, system.C,
+                                  dense=getattr(system, "dense_saddle", False))
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
@@ -248,7 +249,8 @@ class StaticSolver:
         self.system, self.steps = system, steps
         K = system.stiffness(system.rest_state())
         self.A = K.duplicate(copy=True)
-        self.saddle = SaddlePoint(self.A, system.C)
+        self.saddle = SaddlePoint(self.A, system.C,
+                                  dense=getattr(system, "dense_saddle", False))
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix("static_")
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()

@@ -3,7 +3,9 @@
 The blocks are wrapped in a MATNEST and converted to AIJ (MUMPS cannot factor
 a nest); the constraint block carries an explicit zero diagonal so that
 factorisations and fieldsplit find its entries. When A's values change
-(same pattern) ``update`` converts again into the same matrix. Each rank's
+(same pattern) ``update`` converts again into the same matrix. Small serial
+systems (the reduced model's) can be held dense instead and factorised by
+LAPACK's pivoting LU. Each rank's
 rows are [its A rows, its C rows], so a saddle vector's local array is the
 concatenation of the two local parts.
 """
@@ -28,11 +30,12 @@ def zero_diagonal(comm, n_local, n_global):
 class SaddlePoint:
     """K = [A Cᵀ; C 0] for A (n×n) and C (k×n); K = A when C has no rows.
 
-    Collective. ``nu`` and ``nl`` are the local sizes of the two parts.
+    Collective. ``nu`` and ``nl`` are the local sizes of the two parts;
+    ``dense`` holds K as a dense matrix (one rank only).
     """
 
-    def __init__(self, A, C):
-        self.A, self.C = A, C
+    def __init__(self, A, C, dense=False):
+        self.A, self.C, self.aij = A, C, None
         self.nu = A.getLocalSize()[0]
         self.nl = C.getLocalSize()[0] if C is not None else 0
         self.constrained = C is not None and C.getSize()[0] > 0
@@ -45,11 +48,16 @@ class SaddlePoint:
         self.nest = PETSc.Mat().createNest([[A, self.Ct], [C, self.Z]], comm=comm)
         self.K = self.nest.convert("aij", PETSc.Mat())
         self.K.setBlockSize(1)
+        if dense:
+            self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
         self.fields = self.nest.getNestISs()[0]
 
     def update(self):
         """Refresh K after A's values changed (same nonzero pattern)."""
-        if self.constrained:
+        if self.aij is not None:
+            self.nest.convert("aij", self.aij)
+            self.aij.convert("dense", self.K)
+        elif self.constrained:
             self.nest.convert("aij", self.K)
 
     def createVec(self):
@@ -62,12 +70,14 @@ class SaddlePoint:
 
     def destroy(self):
         if self.constrained:
-            for obj in (self.Ct, self.Z, self.nest, self.K):
-                obj.destroy()
+            for obj in (self.Ct, self.Z, self.nest, self.K, self.aij):
+                if obj is not None:
+                    obj.destroy()
 
 
 def saddle_ksp(saddle, prefix):
-    """A KSP on the saddle point: MUMPS LU by default, then the command line.
+    """A KSP on the saddle point: LU by default (MUMPS; LAPACK for a dense K),
+    then the command line.
 
     Fieldsplit preconditioners get the fields "u" (coordinates) and "l"
     (multipliers), e.g. ``-<prefix>pc_type fieldsplit
@@ -79,7 +89,7 @@ def saddle_ksp(saddle, prefix):
     ksp.setType("preonly")
     pc = ksp.getPC()
     pc.setType("lu")
-    pc.setFactorSolverType("mumps")
+    pc.setFactorSolverType("petsc" if saddle.K.getType() == "seqdense" else "mumps")
     ksp.setErrorIfNotConverged(True)
     ksp.setFromOptions()
     if pc.getType() == "fieldsplit" and saddle.constrained:
