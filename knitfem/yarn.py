@@ -80,7 +80,7 @@ def chain_rule(D, terms, hessian=True):
             Hy = Hy + (f1[..., None, None, None, None] * H
                        + f2[..., None, None, None, None] * gg)
     ne, nq = gy.shape[:2]
-    G = np.einsum("qra,eqri->eai", D, gy).reshape(ne, 12)
+    G = np.matmul(D.reshape(-1, 4).T, gy.reshape(ne, -1, 3)).reshape(ne, 12)
     if not hessian:
         return G, None
     DD = np.einsum("qra,qsb->qrsab", D, D).reshape(4 * nq, 16)
@@ -255,7 +255,9 @@ class YarnElements:
 
         y_{eqri} = Σ_a D_{qra} x_{conn[e, a], i}, D_q = [b'(u_q); b''(u_q)].
         """
-        return np.einsum("qra,eai->eqri", self.D, np.asarray(x)[self.conn])
+        nq = len(self.D)
+        y = np.matmul(self.D.reshape(2 * nq, 4), np.asarray(x)[self.conn])
+        return y.reshape(-1, nq, 2, 3)
 
     def points(self, x):
         """Curve points x(u_q) at every quadrature point, (ne, nq, 3)."""
