@@ -31,6 +31,13 @@ f₂ = ¼ W EI κ₀ c^{−3/2}: where κ₀ = 0 the density is ½ EI c, a polyn
 over |x'|⁶, and its Hessian is finite at straight configurations. Where
 κ₀ > 0, ψ' and ψ'' use √(c + δ²) with a negligible δ (see ``bend_terms``).
 
+Every point Hessian ∂²ε/∂y² is handed over in structured form,
+
+    ∂²ε/∂y² = C ⊗ I₃ + Σ_k w_k (a_k b_kᵀ + b_k a_kᵀ),   C (2, 2), a_k, b_k ∈ ℝ^{2×3},
+
+which costs a handful of passes over the points instead of one per entry
+block.
+
 Element DOFs are interleaved, local index 3a + i (control point a, component
 i), and the assembled gradient is laid out like the control points (ncp, 3).
 Everything is vectorised over elements × quadrature points; no PETSc here.
@@ -49,9 +56,11 @@ def chain_rule(D, terms, hessian=True):
     For every energy, from its point derivatives with respect to y = (x', x''),
 
         G_{e,ai}    = Σ_{q,r} D_{qra} f₁ g_{eqri},
-        K_{e,ai,bj} = Σ_{q,r,s} D_{qra} (f₂ g_{eqri} g_{eqsj} + f₁ H_{eqrisj}) D_{qsb}.
+        K_{e,ai,bj} = Σ_{q,r,s} D_{qra} (f₂ g_{eqri} g_{eqsj} + f₁ H_{eqrisj}) D_{qsb},
 
-    The point quantities of all energies are added first and expanded once:
+    with H = C ⊗ I₃ + Σ_k w_k (a_k b_kᵀ + b_k a_kᵀ) and f₂ g gᵀ one more pair
+    (g, g, f₂/2). The point Hessians of all energies are added first (the
+    pairs by one batched product of (6, npairs) matrices) and expanded once:
     K is one matrix product with the (4nq, 16) table D_{qra} D_{qsb}.
 
     Parameters
@@ -61,7 +70,9 @@ def chain_rule(D, terms, hessian=True):
     terms : iterable of (f1, f2, g, H), at least one
         One tuple per energy: f1, f2 (ne, nq) are W ψ'(ε) and W ψ''(ε), with
         W = w_q |X'| the rest line element; g (ne, nq, 2, 3) is ∂ε/∂y and
-        H (ne, nq, 2, 3, 2, 3) is ∂²ε/∂y² (ignored unless ``hessian``).
+        H = (C, pairs) is ∂²ε/∂y²: C (ne, nq, 2, 2), pairs a list of
+        (a, b, w), a and b (ne, nq, 2, 3), w (ne, nq) (ignored unless
+        ``hessian``).
     hessian : bool
         Form K as well as G.
 
@@ -72,17 +83,24 @@ def chain_rule(D, terms, hessian=True):
     K : (ne, 12, 12) or None
         ∂²E/∂p∂p, exactly symmetric.
     """
-    gy = Hy = 0.0
+    gy, C, pairs = 0.0, 0.0, []
     for f1, f2, g, H in terms:
         gy = gy + f1[..., None, None] * g
         if hessian:
-            gg = g[:, :, :, :, None, None] * g[:, :, None, None, :, :]
-            Hy = Hy + (f1[..., None, None, None, None] * H
-                       + f2[..., None, None, None, None] * gg)
+            C = C + f1[..., None, None] * H[0]
+            pairs += [(a, b, f1 * w) for a, b, w in H[1]] + [(g, g, 0.5 * f2)]
     ne, nq = gy.shape[:2]
     G = np.matmul(D.reshape(-1, 4).T, gy.reshape(ne, -1, 3)).reshape(ne, 12)
     if not hessian:
         return G, None
+    # point Hessians Hy = C ⊗ I₃ + S + Sᵀ, S = Σ_k w_k a_k b_kᵀ (6×6 at each point)
+    w = np.stack([w for _, _, w in pairs], axis=2)[..., None, None]
+    a = (np.stack([a for a, _, _ in pairs], axis=2) * w).reshape(ne * nq, -1, 6)
+    b = np.stack([b for _, b, _ in pairs], axis=2).reshape(ne * nq, -1, 6)
+    S = np.matmul(a.transpose(0, 2, 1), b)
+    Hy = (S + S.transpose(0, 2, 1)).reshape(ne, nq, 2, 3, 2, 3)
+    for i in range(3):
+        Hy[:, :, :, i, :, i] += C
     DD = np.einsum("qra,qsb->qrsab", D, D).reshape(4 * nq, 16)
     Hy = Hy.transpose(0, 3, 5, 1, 2, 4).reshape(9 * ne, 4 * nq)  # (e i j, q r s)
     K = (Hy @ DD).reshape(ne, 3, 3, 4, 4).transpose(0, 3, 1, 4, 2).reshape(ne, 12, 12)
@@ -92,7 +110,9 @@ def chain_rule(D, terms, hessian=True):
 def stretch_terms(y, Xp2, W, EA, hessian=True):
     """Stretching: ε = e = (|x'|² − |X'|²)/(2|X'|²), ψ = ½ EA e².
 
-        ∂e/∂x' = x'/|X'|²,   ∂²e/∂x'² = I/|X'|²,   ∂e/∂x'' = 0.
+        ∂e/∂x' = x'/|X'|²,   ∂²e/∂x'² = I/|X'|²,   ∂e/∂x'' = 0,
+
+    so ∂²e/∂y² = diag(1/|X'|², 0) ⊗ I₃ and no pairs.
 
     Parameters
     ----------
@@ -113,14 +133,10 @@ def stretch_terms(y, Xp2, W, EA, hessian=True):
     g[:, :, 0] = u / Xp2[..., None]
     H = None
     if hessian:
-        H = np.zeros(y.shape + (2, 3))
-        H[:, :, 0, :, 0, :] = np.eye(3) / Xp2[..., None, None]
+        C = np.zeros(Xp2.shape + (2, 2))
+        C[..., 0, 0] = 1.0 / Xp2
+        H = (C, [])
     return EA * W * e, EA * W, g, H
-
-
-def _outer(a, b):
-    """a bᵀ at every point: (…, 3), (…, 3) → (…, 3, 3)."""
-    return a[..., :, None] * b[..., None, :]
 
 
 def bend_terms(y, kappa0, W, EI, delta, hessian=True):
@@ -170,25 +186,22 @@ def bend_terms(y, kappa0, W, EI, delta, hessian=True):
     if not hessian:
         return f1, f2, g, None
 
-    # c'' = A''/B³ plus the B terms, which live in the u rows and columns only
-    eye = np.eye(3)
-    vv = np.einsum("eqi,eqi->eq", v, v)[..., None, None]
-    uv = np.einsum("eqi,eqi->eq", u, v)[..., None, None]
-    u_v = _outer(u, v)
-    Huv = 4.0 * u_v - 2.0 * u_v.swapaxes(-1, -2) - 2.0 * uv * eye
-    H = np.empty(y.shape + (2, 3))
-    H[:, :, 0, :, 0, :] = 2.0 * vv * eye - 2.0 * _outer(v, v)
-    H[:, :, 1, :, 1, :] = 2.0 * B[..., None, None] * eye - 2.0 * _outer(u, u)
-    H[:, :, 0, :, 1, :] = Huv
-    H[:, :, 1, :, 0, :] = Huv.swapaxes(-1, -2)
-    H *= (1.0 / B**3)[..., None, None, None, None]
-    # −3B⁻⁴(A'B'ᵀ + B'A'ᵀ) with B' = (2u, 0)
-    t = (6.0 / B**4)[..., None, None, None] * dA[..., None] * u[:, :, None, None, :]
-    H[:, :, :, :, 0, :] -= t
-    H[:, :, 0, :, :, :] -= t.transpose(0, 1, 4, 2, 3)
-    # 12AB⁻⁵B'B'ᵀ − 3AB⁻⁴B'' with B'' = diag(2I, 0)
-    H[:, :, 0, :, 0, :] += ((48.0 * A / B**5)[..., None, None] * _outer(u, u)
-                            - (6.0 * A / B**4)[..., None, None] * eye)
+    # c'' = A''/B³ − 3B⁻⁴(A'B'ᵀ + B'A'ᵀ) + 12AB⁻⁵B'B'ᵀ − 3AB⁻⁴B'' in parts:
+    # A'' = 2 G̃ ⊗ I₃ − 2zzᵀ + 4(UVᵀ + VUᵀ), G̃ = [|v|² −u·v; −u·v |u|²],
+    # z = (v, u), U = (u, 0), V = (0, v); B' = 2U, B'' = 2 diag(1, 0) ⊗ I₃
+    vv = np.einsum("eqi,eqi->eq", v, v)
+    uv = np.einsum("eqi,eqi->eq", u, v)
+    P, T = 1.0 / B**3, 6.0 * A / B**4
+    C = np.empty(B.shape + (2, 2))
+    C[..., 0, 0] = 2.0 * P * vv - T
+    C[..., 0, 1] = C[..., 1, 0] = -2.0 * P * uv
+    C[..., 1, 1] = 2.0 * P * B
+    zero = np.zeros_like(u)
+    z = np.stack([v, u], axis=2)
+    U = np.stack([u, zero], axis=2)
+    V = np.stack([zero, v], axis=2)
+    pairs = [(z, z, -P), (U, V, 4.0 * P), (dA, U, -6.0 / B**4), (U, U, 24.0 * A / B**5)]
+    H = (C, pairs)
     return f1, f2, g, H
 
 
