@@ -240,22 +240,25 @@ class ReducedModel:
         return self.K
 
     def _dense_stiffness(self, x):
-        """Γᵀ K Γ summed from every rank's yarns into a dense-pattern AIJ."""
+        """Γᵀ K Γ: every rank's yarns summed (one Allreduce), rows set in place
+        into a dense-pattern AIJ."""
+        from mpi4py import MPI
+
         values = self.full.stiffness_values(x)
         with EV_PTAP:
             R = self.dense(values)
+            if self.comm.size > 1:
+                self.comm.tompi4py().Allreduce(MPI.IN_PLACE, R, op=MPI.SUM)
+            lo, hi = self.M.getOwnershipRange()
             if self.K is None:
                 N = R.shape[0]
-                lo, hi = self.M.getOwnershipRange()
-                indptr = np.arange(hi - lo + 1) * N
-                indices = np.tile(np.arange(N), hi - lo)
+                self.dense_csr = (np.arange(hi - lo + 1, dtype=PETSc.IntType) * N,
+                                  np.tile(np.arange(N, dtype=PETSc.IntType), hi - lo))
                 self.K = create_aij(self.comm, (hi - lo, N), (hi - lo, N),
-                                    (indptr, indices, np.zeros(len(indices))),
-                                    bsize=3)
-                self.all = np.arange(N, dtype=PETSc.IntType)
-            self.K.zeroEntries()
-            self.K.setValues(self.all, self.all, R, addv=PETSc.InsertMode.ADD_VALUES)
-            self.K.assemble()
+                                    (*self.dense_csr, R[lo:hi].ravel()), bsize=3)
+            else:
+                self.K.setValuesCSR(*self.dense_csr, R[lo:hi].ravel())
+                self.K.assemble()
         return self.K
 
     def project(self, eps, alpha):
