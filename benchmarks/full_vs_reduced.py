@@ -1,0 +1,121 @@
+"""Full vs reduced model on the hanging jersey: cost and result.
+
+    .venv/bin/python -m benchmarks.full_vs_reduced -bench_sizes 7x7,15x30 -bench_t_end 3
+    .venv/bin/python -m benchmarks.full_vs_reduced -bench_plot   # tables, figure
+
+The hanging scene of ``knitfem run`` (backward Euler, dt = 1e-2, start
+horizontal) for each size, with the full model and the reduced model of
+-bench_lod (5,5). Per model: wall time, the time of a step split by PETSc
+events, Newton iterations, unknowns, sag, centroid and lowest point; per
+size: the relative sag difference and the centroid distance of the reduced
+result from the full one. Writes results/full_vs_reduced[_TAG].json and
+results/figures/full_vs_reduced.png (time per step, stacked by part).
+
+Things to try: -bench_t_end 0.2 for a quick check; -knit_EI 2e-7.
+"""
+
+import sys
+
+import numpy as np
+
+from .common import (KnitOptions, PETSc, case, markdown_table, read_json, record, run,
+                     save_figure, sizes_option, split_table, stacked_bars, step_split,
+                     wall, write_json)
+
+STUDY = "full_vs_reduced"
+
+
+def compare(full, reduced):
+    """Relative sag difference and centroid distance, reduced vs full."""
+    if "failed" in full or "failed" in reduced:
+        return None
+    sf, sr = full["summary"]["sag"], reduced["summary"]["sag"]
+    dc = np.subtract(reduced["summary"]["centroid"], full["summary"]["centroid"])
+    return dict(sag_relative_difference=(sr - sf) / sf,
+                centroid_distance=float(np.linalg.norm(dc)))
+
+
+def plot(rec):
+    """Time a step stacked by part, one panel a size (rank 0)."""
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in rec["runs"] if "per_step_s" in r]
+    sizes = sorted({(r["rows"], r["cols"]) for r in runs})
+    fig, axes = plt.subplots(1, len(sizes), figsize=(2.2 + 2.4 * len(sizes), 4.2),
+                             squeeze=False, layout="constrained")
+    for ax, (rows, cols) in zip(axes[0], sizes):
+        mine = [r for r in runs if (r["rows"], r["cols"]) == (rows, cols)]
+        stacked_bars(ax, [r["model"] for r in mine], [r["per_step_s"] for r in mine])
+        ax.set_title(f"{rows}x{cols}")
+    axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
+    fig.suptitle(f"hanging jersey, backward Euler dt = {runs[0]['summary']['dt']:g}, "
+                 f"t_end = {rec['t_end']:g} s, {rec['ranks']} rank(s)", fontsize=10)
+    save_figure(fig, rec["name"])
+
+
+def report(comm, rec):
+    """Print the tables; draw the figure on rank 0."""
+    rows = []
+    for r in rec["runs"]:
+        s = r.get("summary")
+        rows.append([f"{r['rows']}x{r['cols']}", r["model"], r.get("unknowns", "-"),
+                     r.get("newton", "-"), wall(r),
+                     1e3 * r["wall_s"]["run"] / r["steps"] if s else "-",
+                     1e3 * s["sag"] if s else "-",
+                     str(np.round(s["lowest_point"], 5).tolist()) if s else "-",
+                     str(np.round(s["centroid"], 5).tolist()) if s else "-"])
+    PETSc.Sys.Print(markdown_table(
+        ["size", "model", "unknowns", "Newton its", "wall [s]", "ms/step", "sag [mm]",
+         "lowest point [m]", "centroid [m]"], rows))
+    ok = [r for r in rec["runs"] if "per_step_s" in r]
+    PETSc.Sys.Print(split_table([f"{r['rows']}x{r['cols']} {r['model']}" for r in ok],
+                                [r["per_step_s"] for r in ok]))
+    PETSc.Sys.Print(markdown_table(
+        ["size", "relative sag difference", "centroid distance [mm]"],
+        [[f"{d['rows']}x{d['cols']}", d["sag_relative_difference"],
+          1e3 * d["centroid_distance"]] for d in rec["differences"]]))
+    if comm.rank == 0 and ok:
+        plot(rec)
+
+
+def main():
+    comm = PETSc.COMM_WORLD
+    opts = KnitOptions("bench_")
+    sizes = sizes_option(opts, "7x7,15x30")
+    t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
+    lod = opts.getInts("lod", (5, 5), "reduced model: volume control points n1,n2",
+                       2, 4)
+    tag = opts.getString("tag", "", "suffix of the result and figure names")
+    only_report = opts.getBool("plot", False, "only print the tables and draw the "
+                               "figure of the JSON file")
+    opts.printHelp(f"benchmarks.{STUDY} (and the -knit_ options of knitfem run)")
+    name = STUDY + (f"_{tag}" if tag else "")
+    if only_report:
+        return report(comm, read_json(name))
+    if PETSc.Options().hasName("help"):
+        return
+    runs, diffs = [], []
+    for rows, cols in sizes:
+        pair = {}
+        for model in ("full", "reduced"):
+            PETSc.Sys.Print(f"{rows}x{cols} {model} ...")
+            options = dict(knit_rows=rows, knit_cols=cols, knit_model=model)
+            if model == "reduced":
+                options["knit_lod"] = f"{lod[0]},{lod[1]}"
+            r, _ = case(comm, options, t_end)
+            r.update(rows=rows, cols=cols, model=model)
+            if "failed" not in r:
+                r["per_step_s"] = step_split(r)
+            pair[model] = r
+            runs.append(r)
+        d = compare(pair["full"], pair["reduced"])
+        if d:
+            diffs.append(dict(rows=rows, cols=cols, **d))
+    rec = record(comm, STUDY, name=name, t_end=t_end, lod=list(lod), runs=runs,
+                 differences=diffs)
+    write_json(comm, name, rec)
+    report(comm, rec)
+
+
+if __name__ == "__main__":
+    sys.exit(run(main, STUDY))
