@@ -77,7 +77,7 @@ class SaddlePoint:
 
 def saddle_ksp(saddle, prefix):
     """A KSP on the saddle point, then the command line. By default a direct
-    solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.3× faster
+    solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
     with 100 % extra workspace for delayed pivots (ICNTL(14)); LAPACK LU for
     a dense K.
