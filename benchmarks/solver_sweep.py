@@ -76,8 +76,11 @@ def spawn(name, nproc, timeout):
     if os.path.exists(tmp_path(name)):
         os.remove(tmp_path(name))
     try:
+        # os.environ is the environment from before MPI started: the OMPI_/PMIX_
+        # variables of this (singleton) MPI process would break a child mpirun
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
-                           cwd=os.path.dirname(os.path.dirname(CONFIGS)))
+                           cwd=os.path.dirname(os.path.dirname(CONFIGS)),
+                           env=dict(os.environ))
     except subprocess.TimeoutExpired:
         return dict(config=name, failed=f"timeout after {timeout:g} s")
     if not os.path.exists(tmp_path(name)):

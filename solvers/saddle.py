@@ -1,9 +1,10 @@
 """Saddle-point systems [A Cᵀ; C 0] as one AIJ matrix, and their KSP.
 
-The blocks are wrapped in a MATNEST and converted to AIJ (MUMPS cannot factor
-a nest); the constraint block carries an explicit zero diagonal so that
-factorisations and fieldsplit find its entries. When A's values change
-(same pattern) ``update`` converts again into the same matrix. Small serial
+The blocks are wrapped in a MATNEST and converted to AIJ once (MUMPS cannot
+factor a nest); the constraint block carries an explicit zero diagonal so
+that factorisations and fieldsplit find its entries. When A's values change
+(same pattern) ``update`` writes them into their places in K, so K keeps
+its nonzero state and factorisations keep their symbolic phase. Small serial
 systems (the reduced model's) can be held dense instead and factorised by
 LAPACK's pivoting LU. Each rank's
 rows are [its A rows, its C rows], so a saddle vector's local array is the
@@ -51,6 +52,14 @@ class SaddlePoint:
         if dense:
             self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
         self.fields = self.nest.getNestISs()[0]
+        # A's global column j, owned by rank r, is column j − a_r + k_r of K
+        a = np.asarray(A.getOwnershipRanges())
+        k = np.asarray(self.K.getOwnershipRanges()) if not dense else a * 0
+        indptr, cols, _ = A.getValuesCSR()
+        owner = np.searchsorted(a, cols, side="right") - 1
+        indptr = np.append(indptr, np.full(self.nl, indptr[-1]))   # C rows: none
+        self.csr = (indptr.astype(PETSc.IntType),
+                    (cols - a[owner] + k[owner]).astype(PETSc.IntType))
 
     def update(self):
         """Refresh K after A's values changed (same nonzero pattern)."""
@@ -58,7 +67,8 @@ class SaddlePoint:
             self.nest.convert("aij", self.aij)
             self.aij.convert("dense", self.K)
         elif self.constrained:
-            self.nest.convert("aij", self.K)
+            self.K.setValuesCSR(*self.csr, self.A.getValuesCSR()[2])
+            self.K.assemble()
 
     def createVec(self):
         return self.K.createVecRight()
