@@ -137,10 +137,27 @@ VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 
+def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod):
+    """The options that define a scene's problem (a checkpoint's fingerprint)."""
+    if scene in ("catenary", "cantilever"):
+        shape = dict(length=length, segments=nseg,
+                     **(dict(span=span) if scene == "catenary" else {}))
+    else:
+        shape = dict(rows=jersey.rows, cols=jersey.cols,
+                     **(dict(tilt=tilt) if scene == "hanging" else {}))
+    return dict(scene=scene, radius=jersey.radius, **shape, rho=material.rho,
+                EA=material.EA, EI=material.EI, gravity=material.gravity,
+                damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
+
+
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
+    import sys
+
     from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
 
+    from .interrupts import Interrupted
+    from .output import CHANGEABLE, OutputDirectory
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
 
@@ -168,6 +185,9 @@ def run(comm):
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
+    change = opts.getString("restart_change", "", "comma-separated checkpoint "
+                            "entries this restart changes on purpose (of "
+                            + ",".join(CHANGEABLE) + ")")
     drift = opts.getReal("drift_tol", 1e-6, "largest constraint violation [m] "
                          "before the run stops", positive=True)
     try:
@@ -175,33 +195,54 @@ def run(comm):
     except ValueError:
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
-    out = output_dir(f"out/{scene}")
+    change = tuple(c for c in change.split(",") if c)
+    for c in change:
+        if c not in CHANGEABLE:
+            raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
+                            + ", ".join(CHANGEABLE))
+    out = OutputDirectory(comm, PETSc.Options().getString("o", f"out/{scene}"),
+                          " ".join(sys.argv)).claim()
+    if out.note:
+        PETSc.Sys.Print(f"knitfem run: {out.note}")
     try:
-        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt)
-    except ValueError as err:
-        raise KnitError(str(err)) from None
-    system = build_system(comm, opts, fabric, material)
-    opts.printHelp("knitfem run")
-    PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
-                    f"{system.M.getSize()[0]} coordinates + "
-                    f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
-    if static:
-        return run_static(comm, system, scene, out, load_steps, StaticSolver)
-    with PETSc.Log.Stage("Solver set-up"):
-        integrator = INTEGRATORS[method](system, dt)
-    sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
-                     snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
-                     view=VIEWS[scene])
-    if restart:
-        sim.restart(restart)
-    try:
-        rec = sim.run(t_end)
-    except SimulationError as err:
-        PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in {out})")
-        return 3
-    PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
-                    f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
-                    f"{rec['sag']:.4g} m; summary in {out}/summary.json")
+        try:
+            fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
+                                 tilt)
+        except ValueError as err:
+            raise KnitError(str(err)) from None
+        system = build_system(comm, opts, fabric, material)
+        opts.printHelp("knitfem run")
+        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
+                        f"{system.M.getSize()[0]} coordinates + "
+                        f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
+        if static:
+            return run_static(comm, system, scene, out, load_steps, StaticSolver)
+        with PETSc.Log.Stage("Solver set-up"):
+            integrator = INTEGRATORS[method](system, dt)
+        lod = getattr(getattr(system, "embedding", None), "volume", None)
+        problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
+                                PETSc.Options().getInt("knit_quadrature", 4),
+                                lod and (lod.n1, lod.n2))
+        sim = Simulation(system, integrator, out=out, scene=scene,
+                         output_every=every, snapshots=snapshots, drift_tol=drift,
+                         checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
+                         command=sys.argv)
+        if restart:
+            sim.restart(restart, change)
+        try:
+            rec = sim.run(t_end)
+        except SimulationError as err:
+            PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in "
+                            f"{out.path})")
+            return 3
+        except Interrupted as stop:
+            PETSc.Sys.Print(f"knitfem run: {stop}")
+            return stop.code
+        PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
+                        f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
+                        f"{rec['sag']:.4g} m; summary in {out.path}/summary.json")
+    finally:
+        out.release()
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
@@ -216,6 +257,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     with PETSc.Log.Stage("Static solve"):
         solver = StaticSolver(system, load_steps)
         sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
+        out = out.path
         P0, pts0 = sim.geometry()
         if comm.rank == 0:
             sim.initial_lowest = pts0[..., 1].min()
@@ -229,6 +271,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     sim.wall_time = time.perf_counter() - start
     sim.stats["newton"] = its
     rec = sim.summary()
+    sim.write_summary(rec, "completed")
     if comm.rank == 0 and out:
         from . import io
 

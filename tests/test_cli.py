@@ -96,5 +96,5 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
         assert key in rec
     assert rec["steps"] == 4 and rec["sag"] > 0     # the tilted swatch falls
     for name in ("hanging_t0.02s.png", "hanging_t0.04s.png", "hanging_snapshots.png",
-                 "yarns.xdmf", "yarns.h5"):
+                 "yarns.xdmf", "yarns/mesh.h5", "yarns/00000004.h5"):
         assert (tmp_path / name).stat().st_size > 0
