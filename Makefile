@@ -47,7 +47,7 @@ test-serial:
 	timeout 900 $(PYTEST) tests
 
 test-parallel:
-	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py
 
 clean:
 	rm -rf $(VENV) out *.egg-info

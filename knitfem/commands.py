@@ -115,11 +115,13 @@ def material_from_options(opts):
 
 
 def build_system(comm, opts, fabric, material):
-    """The full or reduced model of -knit_model, from a fabric."""
+    """The full, reduced or mixed model of -knit_model, from a fabric."""
+    from .mixed import mixed_from_options
     from .model import FullModel
     from .reduced import ReducedModel, embedding_from_options
 
-    kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
+    kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
+                          "mechanical model")
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
@@ -127,8 +129,10 @@ def build_system(comm, opts, fabric, material):
         full = FullModel(comm, fabric, material, nq=nq)
         if kind == "full":
             return full
-        return ReducedModel(full, embedding_from_options(opts, comm, fabric,
-                                                         full.layout))
+        embedding = embedding_from_options(opts, comm, fabric, full.layout)
+        if kind == "mixed":
+            return mixed_from_options(opts, full, embedding)
+        return ReducedModel(full, embedding)
     finally:
         stage.pop()
 

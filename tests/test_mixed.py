@@ -1,0 +1,135 @@
+"""The mixed model: all full ≡ the full model, none ≡ the reduced model, a
+partial region exact on its linear map, and np = 2 ≡ np = 1."""
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from helpers import COMM, gather, jersey, models, run, to_scipy
+from knitfem import constraints as cons
+from knitfem.mixed import (MixedModel, MixedSpace, VolumeWeights, parse_regions,
+                           stitch_mask)
+from knitfem.options import KnitError
+from solvers.integrators import BackwardEuler
+
+SELF = PETSc.COMM_SELF
+
+
+def mixed(full, red, mask):
+    weights = VolumeWeights(full.fabric, red.embedding.volume)
+    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask))
+
+
+LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches
+
+
+@pytest.fixture(scope="module")
+def fabric():
+    return jersey(6, 6, hold_top=True)
+
+
+def region(full, red, regions):
+    """Full points of stitch regions, widened to whole volume patches."""
+    w = VolumeWeights(full.fabric, red.embedding.volume)
+    return w.patch_mask(w.patches_of(stitch_mask(full.fabric, regions)))
+
+
+@pytest.fixture(scope="module")
+def serial(fabric):
+    full, red = models(SELF, fabric, lod=LOD)
+    yield full, red
+    red.destroy()
+    full.destroy()
+
+
+def states(system, nsteps=5, dt=1e-3):
+    _, x, _ = run(system, BackwardEuler, dt, nsteps)
+    return gather(system.comm, system.full_state(x))
+
+
+def test_all_full_is_the_full_model(serial, fabric):
+    full, red = serial
+    mix = mixed(full, red, np.ones(fabric.nyarn * fabric.ncp, bool))
+    G = to_scipy(mix.space.Gamma).toarray()
+    assert np.array_equal(G, np.eye(len(G)))             # Γ_mix = I, no α left
+    for name in ("M", "C"):
+        A, B = to_scipy(getattr(mix, name)), to_scipy(getattr(full, name))
+        assert abs(A - B).max() <= 1e-15 * abs(B).max()
+    assert np.array_equal(mix.d.getArray(), full.d.getArray())
+    eps = states(mix)
+    ref = states(full)
+    assert np.abs(ref - fabric.X.ravel()).max() > 0.1 * fabric.radius   # it moved
+    assert np.allclose(eps, ref, rtol=0, atol=1e-10 * fabric.radius)
+
+
+def test_none_full_is_the_reduced_model(serial, fabric):
+    full, red = serial
+    mix = mixed(full, red, np.zeros(fabric.nyarn * fabric.ncp, bool))
+    G, Gr = to_scipy(mix.space.Gamma), to_scipy(red.embedding.Gamma)
+    assert G.shape == Gr.shape and abs(G - Gr).max() == 0
+    assert abs(to_scipy(mix.M) - to_scipy(red.M)).max() <= 1e-15 * abs(
+        to_scipy(red.M)).max()
+    assert mix.contacts_kept == 0 and mix.world_rank == red.world_rank
+    eps = states(mix)
+    ref = states(red)
+    assert np.abs(ref - fabric.X.ravel()).max() > 0.01 * fabric.radius
+    assert np.allclose(eps, ref, rtol=0, atol=1e-10 * fabric.radius)
+
+
+def test_partial_region_map_and_constraints(serial, fabric):
+    """Identity rows for full points, Γ rows for the rest; affine maps stay
+    in range(Γ_mix); kept contacts are those with a side at least half full,
+    and every kept constraint holds at rest."""
+    full, red = serial
+    mask = region(full, red, [(0, 2, 1, 2)])
+    assert 0 < mask.sum() < 0.5 * mask.size
+    mix = mixed(full, red, mask)
+    G, Gr = to_scipy(mix.space.Gamma_scalar), to_scipy(red.embedding.Gamma_scalar)
+    sp_ = mix.space
+    assert np.allclose(np.asarray(G.sum(1)).ravel(), 1, rtol=0, atol=1e-14)
+    F = np.flatnonzero(mask)
+    assert np.array_equal(G[F][:, sp_.fullcol[F]].toarray(), np.eye(len(F)))
+    E = np.flatnonzero(~mask)
+    assert abs(G[E][:, sp_.volcol[sp_.alpha]] - Gr[E][:, sp_.alpha]).max() == 0
+    # rest state, and an affine motion of q moves ε by the same map
+    q = mix.rest_state()
+    X = fabric.X.reshape(-1, 3)
+    assert np.allclose(mix.full_state(q).getArray(), X.ravel(), rtol=0,
+                       atol=1e-12 * fabric.radius)
+    A = np.array([[1.1, 0.2, -0.1], [0.05, 0.9, 0.3], [0.0, -0.2, 1.2]])
+    qa = q.getArray().reshape(-1, 3)
+    qa[:] = qa @ A.T + 1e-3
+    assert np.allclose(mix.full_state(q).getArray().reshape(-1, 3), X @ A.T + 1e-3,
+                       rtol=0, atol=1e-12)
+    allc = cons.build(fabric)
+    contact = allc.kind == "contact"
+    side = np.zeros((allc.count, 2))
+    for i in np.flatnonzero(contact):
+        sl = slice(allc.indptr[i], allc.indptr[i + 1])
+        full_w = mask[allc.indices[sl]] * np.abs(allc.values[sl])
+        side[i] = full_w[:4].sum(), full_w[4:].sum()
+    assert mix.contacts_kept == np.sum(side.max(1) >= 0.5) > 0
+    assert mix.contacts_kept < contact.sum()
+    r = mix.C.createVecLeft()
+    mix.C.mult(mix.rest_state(), r)
+    r.axpy(-1.0, mix.d)
+    assert r.norm(PETSc.NormType.INFINITY) < 1e-15
+    # it runs and lies between the two models' motions
+    eps = states(mix)
+    assert np.isfinite(eps).all()
+
+
+def test_parallel_equals_serial(fabric):
+    """np = 2 ≡ np = 1 (run under mpirun -n 2 by ``make test``)."""
+    out = []
+    for comm in (COMM, SELF):
+        full, red = models(comm, fabric, lod=LOD)
+        out.append(states(mixed(full, red, region(full, red, [(4, 5, 4, 6)]))))
+    assert np.abs(out[1] - fabric.X.ravel()).max() > 1e-3 * fabric.radius
+    assert np.allclose(out[0], out[1], rtol=0, atol=1e-8 * fabric.radius)
+
+
+@pytest.mark.parametrize("text", ["0:2", "2:1,0:1", "0:2,0:9", "a:b,0:1"])
+def test_bad_region_is_one_line(text):
+    with pytest.raises(KnitError, match="c0:c1,r0:r1|outside|empty"):
+        parse_regions(text, "-knit_full_region", 3, 4)
