@@ -116,15 +116,18 @@ def material_from_options(opts):
 
 def build_system(comm, opts, fabric, material):
     """The full or reduced model of -knit_model, from a fabric."""
+    from .kernels import KINDS
     from .model import FullModel
     from .reduced import ReducedModel, embedding_from_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
+                             "compiled loops or the numpy reference")
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
-        full = FullModel(comm, fabric, material, nq=nq)
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels)
         if kind == "full":
             return full
         return ReducedModel(full, embedding_from_options(opts, comm, fabric,
