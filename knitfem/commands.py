@@ -116,6 +116,7 @@ def material_from_options(opts):
 
 def build_system(comm, opts, fabric, material):
     """The full, reduced or mixed model of -knit_model, from a fabric."""
+    from .kernels import KINDS
     from .mixed import mixed_from_options
     from .model import FullModel
     from .reduced import ReducedModel, embedding_from_options
@@ -123,10 +124,12 @@ def build_system(comm, opts, fabric, material):
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
+                             "compiled loops or the numpy reference")
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
-        full = FullModel(comm, fabric, material, nq=nq)
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels)
         if kind == "full":
             return full
         embedding = embedding_from_options(opts, comm, fabric, full.layout)

@@ -1,0 +1,275 @@
+# cython: language_level=3, boundscheck=False, wraparound=False
+# cython: cdivision=True, initializedcheck=False
+"""Compiled yarn kernels: loops over elements × quadrature points in C.
+
+The same mathematics as ``knitfem.yarn`` (its module docstring gives the
+chain rule, ``stretch_terms`` and ``bend_terms`` the point derivatives), one
+point at a time. At every point (e, q), with y = (x', x'') = D_q p_e,
+
+    gy  = Σ_energies f₁ ∂ε/∂y                                 (2 × 3),
+    Hy  = Σ_energies f₁ ∂²ε/∂y² + f₂ ∂ε/∂y ∂ε/∂yᵀ              (6 × 6),
+
+and the element sums G_{e,ai} = Σ_{q,r} D_{qra} gy_{ri},
+K_{e,ai,bj} = Σ_{q,r,s} D_{qra} Hy_{ri,sj} D_{qsb} are added straight into
+the caller's arrays: the gradient into control-point rows, the Hessian into
+CSR values through each element entry's slot, and the reduced Hessian
+Γᵀ K Γ into a dense matrix. Nothing here allocates per call except small
+stack arrays; no Python object is touched inside the loops.
+
+Built by ``pip install -e .`` (setup.py); ``knitfem.kernels`` chooses between
+these kernels and the numpy reference.
+"""
+
+from libc.math cimport sqrt
+from libc.stdint cimport int64_t
+from libc.string cimport memset
+
+
+cdef inline void cross(const double *a, const double *b, double *c) nogil:
+    c[0] = a[1] * b[2] - a[2] * b[1]
+    c[1] = a[2] * b[0] - a[0] * b[2]
+    c[2] = a[0] * b[1] - a[1] * b[0]
+
+
+cdef inline double dot(const double *a, const double *b) nogil:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+cdef inline void add_outer(double *H, const double *a, const double *b,
+                           double w) nogil:
+    """The 3 × 3 block H (row stride 6) += w a bᵀ."""
+    cdef int m, n
+    for m in range(3):
+        for n in range(3):
+            H[6 * m + n] += w * a[m] * b[n]
+
+
+cdef inline void point_terms(const double *y, double Xp2, double W, double kappa0,
+                             double EA, double EI, double delta, double *gy,
+                             double *Hy, bint hessian) nogil:
+    """gy (6) and Hy (6 × 6, symmetric) at one point; y = (u, v).
+
+    Stretching: f₁ = EA W e, f₂ = EA W, ∂e/∂y = (u/|X'|², 0),
+    ∂²e/∂y² = diag(1/|X'|², 0) ⊗ I₃. Bending (EI ≠ 0): f₁, f₂, c' and c'' of
+    ``yarn.bend_terms``; c'' = C ⊗ I₃ − 2P zzᵀ + 4P (UVᵀ + VUᵀ)
+    − 6B⁻⁴ (A'Uᵀ + UA'ᵀ) + 48AB⁻⁵ UUᵀ, z = (v, u), U = (u, 0), V = (0, v),
+    added by 3 × 3 blocks H₀₀, H₀₁ (H₁₀ = H₀₁ᵀ) and H₁₁.
+    """
+    cdef const double *u = y
+    cdef const double *v = y + 3
+    cdef double w[3]
+    cdef double dA[6]
+    cdef double g[6]
+    cdef double e, f1, f2, A, B, P, T, c, s, vv, uv, c00, c01, c11, wz
+    cdef double *H00 = Hy
+    cdef double *H01 = Hy + 3
+    cdef double *H11 = Hy + 21
+    cdef int i, m, n
+    # stretching
+    e = 0.5 * (dot(u, u) - Xp2) / Xp2
+    f1 = EA * W * e
+    f2 = EA * W / (Xp2 * Xp2)
+    for i in range(3):
+        gy[i] = f1 * u[i] / Xp2
+        gy[3 + i] = 0.0
+    if hessian:
+        memset(Hy, 0, 36 * sizeof(double))
+        add_outer(H00, u, u, f2)
+        for i in range(3):
+            H00[7 * i] += f1 / Xp2
+    if EI != 0.0:
+        # bending
+        cross(u, v, w)
+        A = dot(w, w)
+        B = dot(u, u)
+        P = 1.0 / (B * B * B)
+        c = A * P
+        s = sqrt(c + delta * delta)
+        f1 = 0.5 * EI * W * (1.0 - kappa0 / s)
+        f2 = 0.25 * EI * W * kappa0 / (s * s * s)
+        T = 6.0 * c / B
+        cross(v, w, dA)
+        cross(w, u, dA + 3)
+        for m in range(6):
+            dA[m] *= 2.0
+            g[m] = dA[m] * P
+        for i in range(3):
+            g[i] -= T * u[i]
+        for m in range(6):
+            gy[m] += f1 * g[m]
+        if hessian:
+            vv = dot(v, v)
+            uv = dot(u, v)
+            c00 = f1 * (2.0 * P * vv - T)
+            c01 = -f1 * 2.0 * P * uv
+            c11 = f1 * 2.0 * P * B
+            for i in range(3):
+                H00[7 * i] += c00
+                H01[7 * i] += c01
+                H11[7 * i] += c11
+            wz = -2.0 * f1 * P                   # −2P zzᵀ
+            add_outer(H00, v, v, wz)
+            add_outer(H01, v, u, wz)
+            add_outer(H11, u, u, wz)
+            add_outer(H01, u, v, 4.0 * f1 * P)   # 4P (UVᵀ + VUᵀ)
+            wz = -6.0 * f1 * P / B               # −6B⁻⁴ (A'Uᵀ + UA'ᵀ)
+            add_outer(H00, dA, u, wz)
+            add_outer(H00, u, dA, wz)
+            add_outer(H01, u, dA + 3, wz)
+            add_outer(H00, u, u, 8.0 * f1 * T / B)   # 48AB⁻⁵ UUᵀ
+            add_outer(H00, g, g, f2)             # f₂ c'c'ᵀ
+            add_outer(H01, g, g + 3, f2)
+            add_outer(H11, g + 3, g + 3, f2)
+    if hessian:
+        for m in range(3):                       # H₁₀ = H₀₁ᵀ
+            for n in range(3):
+                Hy[6 * (3 + n) + m] = H01[6 * m + n]
+
+
+cdef inline void element_y(const double *x, const int64_t *ce, const double *d,
+                           double *y) nogil:
+    """y = (x', x'') = D_q p_e at one point; ce the element's control points,
+    d = D_q (2 × 4)."""
+    cdef int r, a, i, m
+    cdef const double *p
+    for m in range(6):
+        y[m] = 0.0
+    for a in range(4):
+        p = x + 3 * ce[a]
+        for r in range(2):
+            for i in range(3):
+                y[3 * r + i] += d[4 * r + a] * p[i]
+
+
+cdef void element_hessian(const double *x, const int64_t *ce, const double *D,
+                          const double *Xp2, const double *W, const double *kappa0,
+                          Py_ssize_t nq, double EA, double EI, double delta,
+                          double *K) nogil:
+    """K_e (12 × 12, exactly symmetric) of one element: at every point
+    Z = Hy (D_q ⊗ I₃) (6 × 12), then K += (D_q ⊗ I₃)ᵀ Z on the 3 × 3 blocks
+    (a, b ≥ a), mirrored at the end. D (nq, 2, 4); Xp2, W, kappa0 (nq)."""
+    cdef double y[6]
+    cdef double gy[6]
+    cdef double Hy[36]
+    cdef double Z[72]
+    cdef const double *d
+    cdef double h
+    cdef Py_ssize_t q
+    cdef int a, b, m, n, i, j
+    memset(K, 0, 144 * sizeof(double))
+    for q in range(nq):
+        d = D + 8 * q
+        element_y(x, ce, d, y)
+        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, True)
+        for m in range(6):
+            for b in range(4):
+                for j in range(3):
+                    Z[12 * m + 3 * b + j] = d[b] * Hy[6 * m + j] + d[4 + b] * Hy[6 * m + 3 + j]
+        for a in range(4):                       # blocks b >= a
+            for i in range(3):
+                for n in range(3 * a, 12):
+                    K[12 * (3 * a + i) + n] += d[a] * Z[12 * i + n] + d[4 + a] * Z[12 * (3 + i) + n]
+    for m in range(12):                          # exactly symmetric
+        for n in range(m):
+            if m // 3 == n // 3:
+                h = 0.5 * (K[12 * m + n] + K[12 * n + m])
+                K[12 * n + m] = h
+            K[12 * m + n] = K[12 * n + m]
+
+
+cdef void element_gradient(const double *x, const int64_t *ce, const double *D,
+                           const double *Xp2, const double *W, const double *kappa0,
+                           Py_ssize_t nq, double EA, double EI, double delta,
+                           double *G) nogil:
+    """G_e (12) of one element: G_{ai} = Σ_{q,r} D_{qra} gy_{ri}."""
+    cdef double y[6]
+    cdef double gy[6]
+    cdef double Hy[36]
+    cdef const double *d
+    cdef Py_ssize_t q
+    cdef int a, i
+    memset(G, 0, 12 * sizeof(double))
+    for q in range(nq):
+        d = D + 8 * q
+        element_y(x, ce, d, y)
+        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, False)
+        for a in range(4):
+            for i in range(3):
+                G[3 * a + i] += d[a] * gy[i] + d[4 + a] * gy[3 + i]
+
+
+# Arguments common to the kernels below: x (ncp, 3) the control points;
+# conn (ne, 4) the elements' control points; D (nq, 2, 4) = [b'; b''] at the
+# Gauss points; Xp2, W, kappa0 (ne, nq) = |X'|², w_q |X'|, κ₀; EA, EI, delta
+# the stiffnesses and the curvature regularisation of ``yarn.bend_terms``.
+
+def add_gradient(const double[:, ::1] x, const int64_t[:, ::1] conn,
+                 const double[:, :, ::1] D, const double[:, ::1] Xp2,
+                 const double[:, ::1] W, const double[:, ::1] kappa0,
+                 double EA, double EI, double delta, double scale,
+                 double[:, ::1] out):
+    """out[conn[e, a], i] += scale · ∂E/∂p_{e,ai}, summed over all elements."""
+    cdef double G[12]
+    cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
+    cdef int a, i
+    if ne == 0:
+        return
+    with nogil:
+        for e in range(ne):
+            element_gradient(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
+                             &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, G)
+            for a in range(4):
+                for i in range(3):
+                    out[conn[e, a], i] += scale * G[3 * a + i]
+
+
+def element_gradients(const double[:, ::1] x, const int64_t[:, ::1] conn,
+                      const double[:, :, ::1] D, const double[:, ::1] Xp2,
+                      const double[:, ::1] W, const double[:, ::1] kappa0,
+                      double EA, double EI, double delta, double[:, ::1] out):
+    """out[e] = ∂E/∂p_e (ne, 12), local DOF 3a + i."""
+    cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
+    if ne == 0:
+        return
+    with nogil:
+        for e in range(ne):
+            element_gradient(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
+                             &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta,
+                             &out[e, 0])
+
+
+def element_hessians(const double[:, ::1] x, const int64_t[:, ::1] conn,
+                     const double[:, :, ::1] D, const double[:, ::1] Xp2,
+                     const double[:, ::1] W, const double[:, ::1] kappa0,
+                     double EA, double EI, double delta, double[:, :, ::1] out):
+    """out[e] = ∂²E/∂p_e² (ne, 12, 12), local DOF 3a + i."""
+    cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
+    if ne == 0:
+        return
+    with nogil:
+        for e in range(ne):
+            element_hessian(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
+                            &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta,
+                            &out[e, 0, 0])
+
+
+def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
+                   const double[:, :, ::1] D, const double[:, ::1] Xp2,
+                   const double[:, ::1] W, const double[:, ::1] kappa0,
+                   double EA, double EI, double delta,
+                   const int64_t[:, ::1] slot, double[::1] values):
+    """values = Σ_e K_e scattered by slot (ne, 144): values[slot[e, 12m + n]]
+    += K_e[m, n]; values is zeroed first."""
+    cdef double K[144]
+    cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
+    cdef int m
+    if values.shape[0]:
+        memset(&values[0], 0, values.shape[0] * sizeof(double))
+    if ne == 0:
+        return
+    with nogil:
+        for e in range(ne):
+            element_hessian(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
+                            &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, K)
+            for m in range(144):
+                values[slot[e, m]] += K[m]
