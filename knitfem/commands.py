@@ -139,7 +139,8 @@ VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
 
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
-    from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
+    from solvers.integrators import INTEGRATORS, SimulationError
+    from solvers.statics import StaticSolver
 
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
@@ -160,8 +161,9 @@ def run(comm):
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
-                          "(Newton with load stepping, -static_snes_* options)")
-    load_steps = opts.getInt("load_steps", 5, "load steps of the static solve", 1)
+                          "(Newton with pseudo-transient continuation, -static_snes_* "
+                          "options)")
+    load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
@@ -205,7 +207,8 @@ def run(comm):
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
-    """Static equilibrium by Newton with load stepping; writes summary.json."""
+    """Static equilibrium by Newton with pseudo-transient continuation
+    (``solvers/statics.py``); writes summary.json, a VTU and a PNG."""
     import time
 
     from solvers.integrators import SimulationError
@@ -216,7 +219,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     with PETSc.Log.Stage("Static solve"):
         solver = StaticSolver(system, load_steps)
         sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
-        P0, pts0 = sim.geometry()
+        _, pts0 = sim.geometry()
         if comm.rank == 0:
             sim.initial_lowest = pts0[..., 1].min()
         try:
@@ -229,10 +232,10 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     sim.wall_time = time.perf_counter() - start
     sim.stats["newton"] = its
     rec = sim.summary()
+    P, _ = sim.geometry()
     if comm.rank == 0 and out:
         from . import io
 
-        P, _ = sim.geometry()
         io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
                              system.fabric.radius)
         io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
