@@ -161,7 +161,8 @@ def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
     import sys
 
-    from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
+    from solvers.integrators import INTEGRATORS, SimulationError
+    from solvers.statics import StaticSolver
 
     from .interrupts import Interrupted
     from .output import CHANGEABLE, OutputDirectory
@@ -184,8 +185,9 @@ def run(comm):
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
-                          "(Newton with load stepping, -static_snes_* options)")
-    load_steps = opts.getInt("load_steps", 5, "load steps of the static solve", 1)
+                          "(Newton with pseudo-transient continuation, -static_snes_* "
+                          "options)")
+    load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
@@ -253,7 +255,8 @@ def run(comm):
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
-    """Static equilibrium by Newton with load stepping; writes summary.json."""
+    """Static equilibrium by Newton with pseudo-transient continuation
+    (``solvers/statics.py``); writes summary.json, a VTU and a PNG."""
     import time
 
     from solvers.integrators import SimulationError
@@ -265,7 +268,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
         solver = StaticSolver(system, load_steps)
         sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
         out = out.path
-        P0, pts0 = sim.geometry()
+        _, pts0 = sim.geometry()
         if comm.rank == 0:
             sim.initial_lowest = pts0[..., 1].min()
         try:
@@ -279,10 +282,10 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     sim.stats["newton"] = its
     rec = sim.summary()
     sim.write_summary(rec, "completed")
+    P, _ = sim.geometry()
     if comm.rank == 0 and out:
         from . import io
 
-        P, _ = sim.geometry()
         io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
                              system.fabric.radius)
         io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,

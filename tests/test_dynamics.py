@@ -7,7 +7,8 @@ from petsc4py import PETSc
 from helpers import COMM, gather, jersey, run
 from knitfem.model import FullModel, Material
 from knitfem.scenes import make_fabric
-from solvers.integrators import BackwardEuler, StaticSolver, SymplecticEuler
+from solvers.integrators import BackwardEuler, SymplecticEuler
+from solvers.statics import StaticSolver
 
 SELF = PETSc.COMM_SELF
 
