@@ -13,7 +13,7 @@ from Cython.Build import cythonize
 from setuptools import Extension, setup
 
 KERNELS = Extension("knitfem._compiled", ["knitfem/_compiled.pyx"],
-                    extra_compile_args=["-O3"])
+                    extra_compile_args=["-O3"], libraries=["blas"])
 
 setup(
     name="knitfem",

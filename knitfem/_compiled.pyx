@@ -21,8 +21,10 @@ these kernels and the numpy reference.
 """
 
 from libc.math cimport sqrt
-from libc.stdint cimport int64_t
-from libc.string cimport memset
+from libc.stdint cimport int32_t, int64_t
+from libc.string cimport memcpy, memset
+
+from cython.view cimport array as cvarray
 
 
 cdef inline void cross(const double *a, const double *b, double *c) nogil:
@@ -273,3 +275,125 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
                             &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, K)
             for m in range(144):
                 values[slot[e, m]] += K[m]
+
+
+cdef extern from *:
+    """
+    void dgemm_(const char *, const char *, const int *, const int *,
+                const int *, const double *, const double *, const int *,
+                const double *, const int *, const double *, double *,
+                const int *);
+    """
+    void dgemm_(const char *transa, const char *transb, const int *m,
+                const int *n, const int *k, const double *alpha, const double *a,
+                const int *lda, const double *b, const int *ldb,
+                const double *beta, double *c, const int *ldc) nogil
+
+
+DEF CHUNK = 64             # points whose rows Y are formed, then multiplied
+
+
+cdef void chunk_rows(const double *values, const int64_t *indptr,
+                     const int64_t *neighbour, const int64_t *gcols,
+                     const double *gvals, int nw, const int32_t *gmap, int w,
+                     bint own, const int64_t *points, int count, double *Y,
+                     double *G) nogil:
+    """Y_p = Σ_q K_pq Γ̃_q (w × 6 a point, see ``reduce_tangent``) and the
+    row Γ̃_p (G, nw a point) for ``count`` points."""
+    cdef int c, t, ij
+    cdef int64_t p, k, q, at, length
+    cdef double gv
+    cdef double kv[6]
+    cdef double *y
+    cdef const int64_t *cq
+    cdef const double *vq
+    memset(Y, 0, count * 6 * w * sizeof(double))
+    for c in range(count):
+        p = points[c]
+        memcpy(G + c * nw, gvals + p * nw, nw * sizeof(double))
+        length = indptr[p + 1] - indptr[p]
+        y = Y + c * 6 * w
+        for k in range(indptr[p], indptr[p + 1]):
+            q = neighbour[k]
+            at = 9 * indptr[p] + 3 * (k - indptr[p])
+            kv[0] = values[at]
+            kv[1] = values[at + 1]
+            kv[2] = values[at + 2]
+            kv[3] = values[at + 3 * length + 1]
+            kv[4] = values[at + 3 * length + 2]
+            kv[5] = values[at + 6 * length + 2]
+            vq = gvals + q * nw
+            if own:                              # q's columns are the group's
+                for t in range(nw):
+                    gv = vq[t]
+                    for ij in range(6):
+                        y[6 * t + ij] += kv[ij] * gv
+            else:
+                cq = gcols + q * nw
+                for t in range(nw):
+                    gv = vq[t]
+                    for ij in range(6):
+                        y[6 * gmap[cq[t]] + ij] += kv[ij] * gv
+
+
+def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
+                   const int64_t[::1] neighbour, const int64_t[:, ::1] gcols,
+                   const double[:, ::1] gvals, const int64_t[::1] order,
+                   const int64_t[::1] start, const int64_t[:, ::1] key,
+                   const int64_t[:, ::1] reach, const int64_t[::1] width,
+                   const int32_t[:, ::1] gmap, double[:, ::1] out):
+    """out (3nv × 3nv) = Γᵀ K Γ, K (local rows) given by its CSR values.
+
+    K's values are in the layout of ``ElementPattern.blocks3`` over the
+    scalar pattern (indptr, neighbour): block K_pq[i, j] of the k-th
+    neighbour q of p sits at 9 indptr[p] + 3 i len(p) + 3k + j. Γ̃ has the
+    rows (gcols, gvals) (ncp, nw). The points are grouped, group g being
+    order[start[g]:start[g + 1]]: points whose rows of Γ̃ have the columns
+    key[g] (nw), and whose neighbours q reach the width[g] columns
+    reach[g, :width[g]] (numbered by gmap[g, column]). For each group and
+    each of the component pairs ij = (0,0), (0,1), (0,2), (1,1), (1,2), (2,2),
+
+        Y^{ij}_p = Σ_q K_pq[i, j] Γ̃_q   (over the reached columns),
+        R^{ij}[key, reach] += Σ_p Γ̃_pᵀ Y^{ij}_p   (dgemm, CHUNK points at once),
+
+    then out[(c,i), (d,j)] = R^{ij}_{cd} and R^{ji} = (R^{ij})ᵀ (K symmetric).
+    """
+    cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1]
+    cdef Py_ssize_t nv = out.shape[0] // 3, maxw = reach.shape[1]
+    cdef Py_ssize_t g, c, d, u, b0
+    cdef int w, m, count, inw = <int>nw
+    cdef double one = 1.0
+    cdef double beta
+    cdef double[:, :, ::1] R6 = cvarray((nv, nv, 6), sizeof(double), "d")
+    cdef double[::1] Y = cvarray((CHUNK * 6 * maxw,), sizeof(double), "d")
+    cdef double[::1] G = cvarray((CHUNK * nw,), sizeof(double), "d")
+    cdef double[::1] B = cvarray((nw * 6 * maxw,), sizeof(double), "d")
+    cdef int pair_i[6]
+    cdef int pair_j[6]
+    cdef int ij
+    pair_i[:] = [0, 0, 0, 1, 1, 2]
+    pair_j[:] = [0, 1, 2, 1, 2, 2]
+    with nogil:
+        memset(&R6[0, 0, 0], 0, nv * nv * 6 * sizeof(double))
+        for g in range(ng):
+            w = <int>width[g]
+            m = 6 * w
+            beta = 0.0
+            for b0 in range(start[g], start[g + 1], CHUNK):
+                count = <int>min(CHUNK, start[g + 1] - b0)
+                chunk_rows(&values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
+                           &gvals[0, 0], inw, &gmap[g, 0], w, w == nw,
+                           &order[b0], count, &Y[0], &G[0])
+                # B (nw × m, row-major) (+)= Gᵀ Y: column-major Bᵀ = Yᵀ G
+                dgemm_("N", "T", &m, &inw, &count, &one, &Y[0], &m, &G[0], &inw,
+                       &beta, &B[0], &m)
+                beta = 1.0
+            for c in range(nw):
+                for u in range(w):
+                    for ij in range(6):
+                        R6[key[g, c], reach[g, u], ij] += B[c * m + 6 * u + ij]
+        for c in range(nv):
+            for d in range(nv):
+                for ij in range(6):
+                    out[3 * c + pair_i[ij], 3 * d + pair_j[ij]] = R6[c, d, ij]
+                    out[3 * d + pair_j[ij], 3 * c + pair_i[ij]] = R6[c, d, ij]

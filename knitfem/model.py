@@ -27,7 +27,7 @@ from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
 from .kernels import yarn_kernels
 from .yarn import YarnElements
 
-__all__ = ["Material", "FullModel"]
+__all__ = ["Material", "FullModel", "applied_forces"]
 
 EV_FORCES = PETSc.Log.Event("knitForces")
 EV_TANGENT = PETSc.Log.Event("knitTangent")
@@ -48,6 +48,23 @@ class Material:
     EI: float = 1.5e-8
     gravity: float = 9.81
     damping: float = 0.0
+
+
+def applied_forces(system, v, Q):
+    """Q = Q_g − c_d M v: gravity and damping of a mechanical system (collective).
+
+    Written in the system's own M and Q_g, so that it serves the full model
+    and, exactly, the reduced one: Γᵀ (Q_g − c_d M Γα̇) = Γᵀ Q_g − c_d M^V α̇.
+    A term added here must keep that form (an operator of the system times
+    its state or velocity).
+    """
+    c_d = system.material.damping
+    if c_d:
+        system.M.mult(v, Q)
+        Q.scale(-c_d)
+        Q.axpy(1.0, system.Qg)
+    else:
+        system.Qg.copy(Q)
 
 
 class FullModel:
@@ -150,23 +167,10 @@ class FullModel:
         self.kernels.add_gradient(self.yarn_points(x), Q.getArray().reshape(-1, 3),
                                   -1.0)
 
-    def applied_forces(self, x, v, Q):
-        """Q = Q_g − c_d M ε̇: gravity and damping (collective).
-
-        ``ReducedModel.applied_forces`` is its image Γᵀ(·) under the
-        embedding, formed on the reduced side: a term added here is added
-        there too."""
-        if self.material.damping:
-            self.M.mult(v, Q)
-            Q.scale(-self.material.damping)
-            Q.axpy(1.0, self.Qg)
-        else:
-            self.Qg.copy(Q)
-
     def forces(self, x, v, Q):
         """Q = −∂E/∂ε + Q_g − c_d M ε̇ (collective)."""
         with EV_FORCES:
-            self.applied_forces(x, v, Q)
+            applied_forces(self, v, Q)
             self.add_elastic_forces(x, Q)
 
     def stiffness_values(self, x):
