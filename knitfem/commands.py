@@ -20,9 +20,8 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape())
 
 
-def output_dir(default):
-    """The -o DIR option, created on rank 0."""
-    path = PETSc.Options().getString("o", default)
+def output_dir(path):
+    """Create the output directory (-o DIR) on rank 0."""
     if PETSc.COMM_WORLD.rank == 0:
         try:
             os.makedirs(path, exist_ok=True)
@@ -35,14 +34,16 @@ def output_dir(default):
 def dofs(comm):
     """Print the unknowns table (Figure 9) counted from the assembled objects."""
     from .model import FullModel, Material
-    from .reduced import embedding_from_options
+    from .reduced import embedding_from_options, volume_options
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts, 15, 30)
     fmt = opts.getChoice("format", "table", ("table", "json"), "output format")
+    volume_options(opts)
+    if opts.finish("knitfem dofs"):
+        return
     fabric = jersey_fabric(jersey)
     emb = embedding_from_options(opts, comm, fabric)
-    opts.printHelp("knitfem dofs")
     full = FullModel(comm, fabric, Material())
     ncp_yarn = full.layout.ncp_per_yarn
     dof = full.M.getSize()[0]
@@ -85,8 +86,10 @@ def pattern(comm):
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
-    out = output_dir("out/pattern")
-    opts.printHelp("knitfem pattern")
+    out = opts.getOutput("out/pattern")
+    if opts.finish("knitfem pattern"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
@@ -114,13 +117,23 @@ def material_from_options(opts):
                              "mass-proportional damping c_d [1/s]", nonnegative=True))
 
 
+def model_options(opts):
+    """(model, Gauss points) from -knit_model, -knit_quadrature; declares the
+    reduced model's -knit_lod, -knit_volume too (read only for it)."""
+    from .reduced import volume_options
+
+    kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
+    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    volume_options(opts)
+    return kind, nq
+
+
 def build_system(comm, opts, fabric, material):
     """The full or reduced model of -knit_model, from a fabric."""
     from .model import FullModel
     from .reduced import ReducedModel, embedding_from_options
 
-    kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
-    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    kind, nq = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
@@ -132,6 +145,13 @@ def build_system(comm, opts, fabric, material):
     finally:
         stage.pop()
 
+
+RUN_HELP_FOOTER = """\
+PETSc options reach each solver through its prefix: -full_ and -reduced_ (the
+implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
+-full_explicit_ (symplectic), -static_ (-knit_static: -static_snes_monitor);
+-log_view, -options_file FILE. Example:
+  knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
 VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
@@ -177,13 +197,16 @@ def run(comm):
     except ValueError:
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
-    out = output_dir(f"out/{scene}")
+    model_options(opts)
+    out = opts.getOutput(f"out/{scene}")
+    if opts.finish("knitfem run", RUN_HELP_FOOTER):
+        return
+    output_dir(out)
     try:
         fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt)
     except ValueError as err:
         raise KnitError(str(err)) from None
     system = build_system(comm, opts, fabric, material)
-    opts.printHelp("knitfem run")
     PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
                     f"{system.M.getSize()[0]} coordinates + "
                     f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
@@ -281,8 +304,10 @@ def deform(comm):
     amount = opts.getReal("amount", DEFAULT_AMOUNTS[mode], "amount: degrees "
                           "(flexion, shear, torsion) or stretch ratio (traction)")
     lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    out = output_dir(f"out/deform_{mode}")
-    opts.printHelp("knitfem deform")
+    out = opts.getOutput(f"out/deform_{mode}")
+    if opts.finish("knitfem deform"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
