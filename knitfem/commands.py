@@ -42,21 +42,25 @@ def dofs(comm):
     volume_options(opts)
     if opts.finish("knitfem dofs"):
         return
-    fabric = jersey_fabric(jersey)
+    fabric = jersey_fabric(jersey, hold_top=True)
     emb = embedding_from_options(opts, comm, fabric)
     full = FullModel(comm, fabric, Material())
+    mpi = comm.tompi4py()
+    contacts, fixed = (mpi.allreduce(int(np.sum(full.constraint_kind == kind)))
+                       for kind in ("contact", "fixed"))
     ncp_yarn = full.layout.ncp_per_yarn
     dof = full.M.getSize()[0]
-    scalar_con = full.C.getSize()[0]
     reduced_dofs = emb.Gamma.getSize()[1]
     rec = dict(rows=jersey.rows, cols=jersey.cols, control_points_per_yarn=ncp_yarn,
                dofs_per_yarn=3 * ncp_yarn, control_points=full.m.getSize()[0],
-               dofs=dof, vector_constraints=full.c.getSize()[0],
-               scalar_constraints=scalar_con, unknowns=dof + scalar_con,
+               dofs=dof, vector_constraints=contacts,
+               scalar_constraints=3 * contacts, unknowns=dof + 3 * contacts,
+               fixed_points_hanging=fixed,
+               unknowns_hanging=full.M.getSize()[0] + full.C.getSize()[0],
                paper_scalar_constraints=3 * 2 * jersey.cols * jersey.rows,
                reduced_control_points=emb.Gamma_scalar.getSize()[1],
                reduced_dofs=reduced_dofs,
-               ratio=(dof + scalar_con) / reduced_dofs)
+               ratio=(dof + 3 * contacts) / reduced_dofs)
     if fmt == "json":
         PETSc.Sys.Print(json.dumps(rec))
         return
@@ -76,6 +80,9 @@ def dofs(comm):
     lines.append(f"(the paper counts 2 nc contacts for every course, "
                  f"{rec['paper_scalar_constraints']} scalar constraints; an open "
                  f"jersey has (r-1)·2·nc interlocks)")
+    lines.append(f"hanging scene (knitfem run): top course held at {fixed} fixed "
+                 f"points, {rec['unknowns']} + {3 * fixed} = "
+                 f"{rec['unknowns_hanging']} unknowns")
     PETSc.Sys.Print("\n".join(lines))
     full.destroy()
 
@@ -207,9 +214,10 @@ def run(comm):
     except ValueError as err:
         raise KnitError(str(err)) from None
     system = build_system(comm, opts, fabric, material)
-    PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
-                    f"{system.M.getSize()[0]} coordinates + "
-                    f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
+    n, k = system.M.getSize()[0], system.C.getSize()[0]
+    PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, {n} coordinates + "
+                    f"{k} constraints (contacts, fixed points) = {n + k} unknowns, "
+                    f"{comm.size} rank(s)")
     if static:
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
     with PETSc.Log.Stage("Solver set-up"):

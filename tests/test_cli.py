@@ -31,6 +31,19 @@ def test_dofs_table_paper_case():
     assert rec["scalar_constraints"] == 3 * 2 * 30 * 14
     assert rec["unknowns"] == 10935 + 2520
     assert rec["ratio"] == pytest.approx(13455 / 150)
+    # the hanging scene's held course: 30 loop heads, what `knitfem run` counts
+    assert rec["fixed_points_hanging"] == 30
+    assert rec["unknowns_hanging"] == 13455 + 3 * 30
+
+
+def test_dofs_and_run_count_the_same_unknowns_by_name(tmp_path):
+    d = knitfem("dofs", "-knit_rows", "3", "-knit_cols", "2")
+    r = knitfem("run", "-knit_rows", "3", "-knit_cols", "2", "-knit_t_end", "0.01",
+                "-knit_snapshots", "", "-o", str(tmp_path))
+    assert d.returncode == 0 and r.returncode == 0, d.stderr + r.stderr
+    total = int(re.search(r"= (\d+) unknowns", d.stdout).group(1))
+    free = int(re.search(r"Scalar unknowns total\s+(\d+)", d.stdout).group(1))
+    assert f"= {total} unknowns" in r.stdout and total == free + 3 * 2
 
 
 def test_dofs_table_text():
