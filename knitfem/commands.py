@@ -221,6 +221,8 @@ def run(comm):
     if static:
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
     with PETSc.Log.Stage("Solver set-up"):
+        if method == "symplectic":
+            explicit_step_fits(system, dt)
         integrator = INTEGRATORS[method](system, dt)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
@@ -235,6 +237,18 @@ def run(comm):
     PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
                     f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
                     f"{rec['sag']:.4g} m; summary in {out}/summary.json")
+
+
+def explicit_step_fits(system, dt):
+    """Refuse a symplectic step above its stability limit 2/ω_max."""
+    from solvers.stability import stable_step
+
+    h = stable_step(system)
+    if dt > h:
+        raise KnitError(f"-knit_dt {dt:g} is above the stable step of the symplectic "
+                        f"integrator, 2/omega_max = {h:.3g} s for this yarn and "
+                        f"model: use -knit_dt {float(f'{0.9 * h:.2g}'):g} or "
+                        f"-knit_integrator implicit")
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):

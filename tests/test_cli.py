@@ -210,3 +210,13 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
                                text=True, env=env, cwd=tmp_path, timeout=300)
             assert p.returncode == 0, (line, p.stderr)
             assert "unknown" not in p.stderr and "warning" not in p.stderr, line
+
+
+def test_symplectic_step_above_the_stable_step_is_refused(tmp_path):
+    p = knitfem("run", "-knit_integrator", "symplectic", "-knit_dt", "1e-3",
+                "-o", str(tmp_path))
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    h = float(re.search(r"2/omega_max = (\S+) s", p.stderr).group(1))
+    assert 1e-7 < h < 1e-5                       # the default yarn's axial waves
+    use = re.search(r"use -knit_dt (\S+)", p.stderr).group(1)
+    assert float(use) < h
