@@ -165,13 +165,18 @@ class Simulation:
         self.snapshots = [s for s in self.snapshots if s > self.t + 1e-9]
 
     def progress(self, m):
+        """One line: step, t, running totals of Newton and KSP iterations,
+        energies, drift, wall time so far and the time left at this pace."""
         if self.verbose:
+            elapsed = time.perf_counter() - self.clock[0]
+            done = (self.t - self.clock[1]) / (self.clock[2] - self.clock[1])
+            left = elapsed * (1 - done) / done if done > 0 else float("nan")
             PETSc.Sys.Print(
-                f"step {self.step_count:6d}  t {self.t:8.4f}  newton "
-                f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  "
-                f"kinetic {m['kinetic_energy']:.4e}  elastic "
-                f"{m['elastic_energy']:.4e}  |C x - d| "
-                f"{m['max_constraint_violation']:.2e}", comm=self.comm)
+                f"step {self.step_count:6d}  t {self.t:.4f} s  total its: newton "
+                f"{self.stats['newton']:5d} ksp {self.stats['ksp']:5d}  E_kin "
+                f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
+                f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
+                f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
 
     # -- the loop ------------------------------------------------------------
     def check(self, m):
@@ -189,6 +194,7 @@ class Simulation:
         dt = self.integrator.dt
         nsteps = int(round((t_end - self.t) / dt))
         start = time.perf_counter()
+        self.clock = (start, self.t, t_end)
         P, pts = self.geometry()
         if self.comm.rank == 0:
             # room for the rest shape to swing or sag down by its own size
