@@ -20,9 +20,8 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape())
 
 
-def output_dir(default):
-    """The -o DIR option, created on rank 0."""
-    path = PETSc.Options().getString("o", default)
+def output_dir(path):
+    """Create the output directory (-o DIR) on rank 0."""
     if PETSc.COMM_WORLD.rank == 0:
         try:
             os.makedirs(path, exist_ok=True)
@@ -35,27 +34,33 @@ def output_dir(default):
 def dofs(comm):
     """Print the unknowns table (Figure 9) counted from the assembled objects."""
     from .model import FullModel, Material
-    from .reduced import embedding_from_options
+    from .reduced import embedding_from_options, volume_options
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts, 15, 30)
     fmt = opts.getChoice("format", "table", ("table", "json"), "output format")
-    fabric = jersey_fabric(jersey)
+    volume_options(opts)
+    if opts.finish("knitfem dofs"):
+        return
+    fabric = jersey_fabric(jersey, hold_top=True)
     emb = embedding_from_options(opts, comm, fabric)
-    opts.printHelp("knitfem dofs")
     full = FullModel(comm, fabric, Material())
+    mpi = comm.tompi4py()
+    contacts, fixed = (mpi.allreduce(int(np.sum(full.constraint_kind == kind)))
+                       for kind in ("contact", "fixed"))
     ncp_yarn = full.layout.ncp_per_yarn
     dof = full.M.getSize()[0]
-    scalar_con = full.C.getSize()[0]
     reduced_dofs = emb.Gamma.getSize()[1]
     rec = dict(rows=jersey.rows, cols=jersey.cols, control_points_per_yarn=ncp_yarn,
                dofs_per_yarn=3 * ncp_yarn, control_points=full.m.getSize()[0],
-               dofs=dof, vector_constraints=full.c.getSize()[0],
-               scalar_constraints=scalar_con, unknowns=dof + scalar_con,
+               dofs=dof, vector_constraints=contacts,
+               scalar_constraints=3 * contacts, unknowns=dof + 3 * contacts,
+               fixed_points_hanging=fixed,
+               unknowns_hanging=full.M.getSize()[0] + full.C.getSize()[0],
                paper_scalar_constraints=3 * 2 * jersey.cols * jersey.rows,
                reduced_control_points=emb.Gamma_scalar.getSize()[1],
                reduced_dofs=reduced_dofs,
-               ratio=(dof + scalar_con) / reduced_dofs)
+               ratio=(dof + 3 * contacts) / reduced_dofs)
     if fmt == "json":
         PETSc.Sys.Print(json.dumps(rec))
         return
@@ -75,6 +80,9 @@ def dofs(comm):
     lines.append(f"(the paper counts 2 nc contacts for every course, "
                  f"{rec['paper_scalar_constraints']} scalar constraints; an open "
                  f"jersey has (r-1)·2·nc interlocks)")
+    lines.append(f"hanging scene (knitfem run): top course held at {fixed} fixed "
+                 f"points, {rec['unknowns']} + {3 * fixed} = "
+                 f"{rec['unknowns_hanging']} unknowns")
     PETSc.Sys.Print("\n".join(lines))
     full.destroy()
 
@@ -85,8 +93,10 @@ def pattern(comm):
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
-    out = output_dir("out/pattern")
-    opts.printHelp("knitfem pattern")
+    out = opts.getOutput("out/pattern")
+    if opts.finish("knitfem pattern"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
@@ -114,18 +124,31 @@ def material_from_options(opts):
                              "mass-proportional damping c_d [1/s]", nonnegative=True))
 
 
-def build_system(comm, opts, fabric, material):
-    """The full, reduced or mixed model of -knit_model, from a fabric."""
+def model_options(opts):
+    """(model, Gauss points, kernels) from -knit_model, -knit_quadrature,
+    -knit_kernels; declares the options read only for some models, too
+    (-knit_lod, -knit_volume; -knit_full_region(s))."""
     from .kernels import KINDS
-    from .mixed import mixed_from_options
-    from .model import FullModel
-    from .reduced import ReducedModel, embedding_from_options
+    from .mixed import region_options
+    from .reduced import volume_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
+    volume_options(opts)
+    region_options(opts)
+    return kind, nq, kernels
+
+
+def build_system(comm, opts, fabric, material):
+    """The full, reduced or mixed model of -knit_model, from a fabric."""
+    from .mixed import mixed_from_options
+    from .model import FullModel
+    from .reduced import ReducedModel, embedding_from_options
+
+    kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
@@ -139,6 +162,13 @@ def build_system(comm, opts, fabric, material):
     finally:
         stage.pop()
 
+
+RUN_HELP_FOOTER = """\
+PETSc options reach each solver through its prefix: -full_ and -reduced_ (the
+implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
+-full_explicit_ (symplectic), -static_ (-knit_static: -static_snes_monitor);
+-log_view, -options_file FILE. Example:
+  knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
 VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
@@ -209,8 +239,11 @@ def run(comm):
         if c not in CHANGEABLE:
             raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
                             + ", ".join(CHANGEABLE))
-    out = OutputDirectory(comm, PETSc.Options().getString("o", f"out/{scene}"),
-                          " ".join(sys.argv)).claim()
+    model_options(opts)
+    path = opts.getOutput(f"out/{scene}")
+    if opts.finish("knitfem run", RUN_HELP_FOOTER):
+        return
+    out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
     if out.note:
         PETSc.Sys.Print(f"knitfem run: {out.note}")
     try:
@@ -220,13 +253,15 @@ def run(comm):
         except ValueError as err:
             raise KnitError(str(err)) from None
         system = build_system(comm, opts, fabric, material)
-        opts.printHelp("knitfem run")
-        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
-                        f"{system.M.getSize()[0]} coordinates + "
-                        f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
+        n, k = system.M.getSize()[0], system.C.getSize()[0]
+        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, {n} coordinates "
+                        f"+ {k} constraints (contacts, fixed points) = {n + k} "
+                        f"unknowns, {comm.size} rank(s)")
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):
+            if method == "symplectic":
+                explicit_step_fits(system, dt)
             integrator = INTEGRATORS[method](system, dt)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
         problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
@@ -252,6 +287,20 @@ def run(comm):
                         f"{rec['sag']:.4g} m; summary in {out.path}/summary.json")
     finally:
         out.release()
+
+
+def explicit_step_fits(system, dt):
+    """Refuse a symplectic step above its stability limit 2/ω_max: the run
+    would blow up (SimulationError, exit 3, before the first step)."""
+    from solvers.integrators import SimulationError
+    from solvers.stability import stable_step
+
+    h = stable_step(system)
+    if dt > h:
+        raise SimulationError(f"-knit_dt {dt:g} is above the stable step of the symplectic "
+                              f"integrator, 2/omega_max = {h:.3g} s for this yarn "
+                              f"and model: use -knit_dt {float(f'{0.9 * h:.2g}'):g} "
+                              f"or -knit_integrator implicit")
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
@@ -331,8 +380,10 @@ def deform(comm):
     amount = opts.getReal("amount", DEFAULT_AMOUNTS[mode], "amount: degrees "
                           "(flexion, shear, torsion) or stretch ratio (traction)")
     lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    out = output_dir(f"out/deform_{mode}")
-    opts.printHelp("knitfem deform")
+    out = opts.getOutput(f"out/deform_{mode}")
+    if opts.finish("knitfem deform"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)

@@ -385,12 +385,18 @@ def parse_regions(text, where, nc, nr):
     return regions
 
 
-def regions_from_options(opts, fabric):
-    """The full regions of -knit_full_region and -knit_full_regions FILE."""
+def region_options(opts):
+    """(region, file) from -knit_full_region and -knit_full_regions FILE."""
     one = opts.getString("full_region", "", "yarn-level region of the mixed model: "
                          "stitches c0:c1, courses r0:r1 (half-open), as c0:c1,r0:r1")
     path = opts.getString("full_regions", "", "file of yarn-level regions, one "
                           "c0:c1,r0:r1 a line ('#' comments)")
+    return one, path
+
+
+def regions_from_options(opts, fabric):
+    """The full regions of -knit_full_region and -knit_full_regions FILE."""
+    one, path = region_options(opts)
     nc = max((fabric.ncp - 3) // SEGMENTS_PER_STITCH, 1)
     regions = parse_regions(one, "-knit_full_region", nc, fabric.nyarn)
     if path:

@@ -134,13 +134,19 @@ class GroupedTangent:
         return out
 
 
+def volume_options(opts):
+    """((n1, n2), path) from -knit_lod n1,n2 and -knit_volume FILE."""
+    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
+    path = opts.getString("volume", "", "bounding volume file (meshio; default: "
+                          "a box around the fabric at rest)")
+    return lod, path
+
+
 def embedding_from_options(opts, comm, fabric, layout=None):
     """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ."""
     from .assembly import YarnLayout
 
-    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    path = opts.getString("volume", "", "bounding volume file (meshio; default: "
-                          "a box around the fabric at rest)")
+    lod, path = volume_options(opts)
     if path:
         try:
             volume = BoundingVolume.load(path)

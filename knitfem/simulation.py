@@ -279,13 +279,18 @@ class Simulation:
             None, f"continues {path} (step {ckpt.step}, t = {ckpt.t:g} s)")
 
     def progress(self, m):
+        """One line: step, t, running totals of Newton and KSP iterations,
+        energies, drift, wall time so far and the time left at this pace."""
         if self.verbose:
+            elapsed = time.perf_counter() - self.clock[0]
+            done = (self.t - self.clock[1]) / (self.clock[2] - self.clock[1])
+            left = elapsed * (1 - done) / done if done > 0 else float("nan")
             PETSc.Sys.Print(
-                f"step {self.step_count:6d}  t {self.t:8.4f}  newton "
-                f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  "
-                f"kinetic {m['kinetic_energy']:.4e}  elastic "
-                f"{m['elastic_energy']:.4e}  |C x - d| "
-                f"{m['max_constraint_violation']:.2e}", comm=self.comm)
+                f"step {self.step_count:6d}  t {self.t:.4f} s  total its: newton "
+                f"{self.stats['newton']:5d} ksp {self.stats['ksp']:5d}  E_kin "
+                f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
+                f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
+                f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
 
     # -- the loop ------------------------------------------------------------
     def guard(self):
@@ -354,6 +359,7 @@ class Simulation:
         dt = self.integrator.dt
         nsteps = int(round((t_end - self.t) / dt))
         start = self.start = time.perf_counter()
+        self.clock = (start, self.t, t_end)
         self.at = (self.step_count, self.t)
         stage = PETSc.Log.Stage("Time stepping")
         interrupts.hold(True)
