@@ -42,12 +42,13 @@ FORMAT = 2
 
 # fingerprint entry -> the option that sets it (for the one-line refusal)
 FINGERPRINT_OPTIONS = {
-    "scene": "-knit_scene", "rows": "-knit_rows", "cols": "-knit_cols",
+    "scene": "-knit_scene", "model": "-knit_model", "rows": "-knit_rows",
+    "cols": "-knit_cols",
     "radius": "-knit_radius", "tilt": "-knit_tilt", "length": "-knit_length",
     "span": "-knit_span", "segments": "-knit_segments", "lod": "-knit_lod",
     "rho": "-knit_rho", "EA": "-knit_EA", "EI": "-knit_EI",
     "gravity": "-knit_gravity", "damping": "-knit_damping",
-    "quadrature": "-knit_quadrature", "model": "-knit_model",
+    "quadrature": "-knit_quadrature",
     "integrator": "-knit_integrator", "dt": "-knit_dt",
     "unknowns": "the model size", "geometry": "the rest geometry "
     "(-knit_volume or the pattern)", "version": "the knitfem version"}
@@ -228,24 +229,18 @@ class OutputDirectory:
 
     # -- checkpoints ---------------------------------------------------------
     def write_checkpoint(self, ckpt):
-        """Rank 0 writes ``ckpt`` to a temporary, then keeps the previous
-        checkpoint as checkpoint.prev.h5 and renames the new one into place.
-        A non-finite state is refused before anything is touched."""
+        """Rank 0 keeps the previous checkpoint as checkpoint.prev.h5 (a hard
+        link renamed into place) and writes ``ckpt`` to a temporary renamed
+        over checkpoint.h5. A non-finite state is refused before anything is
+        touched."""
         def write():
             if not (np.isfinite(ckpt.x).all() and np.isfinite(ckpt.v).all()):
                 raise OutputError("the state is not finite; the last checkpoint "
                                   "is kept")
             path = self.file(CHECKPOINT)
-            tmp = self.file(f".{CHECKPOINT}.{socket.gethostname()}.{os.getpid()}.tmp")
-            try:
-                ckpt.save(tmp)
-                if os.path.exists(path):
-                    os.replace(path, self.file(PREVIOUS))
-                os.replace(tmp, path)
-            except BaseException:
-                if os.path.exists(tmp):
-                    os.remove(tmp)
-                raise
+            if os.path.exists(path):        # checkpoint.h5 never goes missing
+                io.atomic_write(self.file(PREVIOUS), lambda tmp: os.link(path, tmp))
+            io.atomic_write(path, ckpt.save)
 
         self.rank0(write)
         return self.file(CHECKPOINT)

@@ -301,8 +301,9 @@ class Simulation:
             self.r.axpy(-1.0, s.d)
             r = self.r.getArray(readonly=True)
             drift = float(np.abs(r).max()) if r.size else 0.0
-        bad, drift, signum = self.comm.tompi4py().allreduce(
-            np.array([float(bad), drift, float(interrupts.pending())]), op=MPI.MAX)
+        flags = np.array([float(bad), drift, float(interrupts.pending())])
+        self.comm.tompi4py().Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+        bad, drift, signum = flags
         if bad or not np.isfinite(drift):
             raise SimulationError("the state is not finite (NaN or inf)")
         if drift > self.drift_tol:
