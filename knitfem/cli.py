@@ -34,8 +34,8 @@ def main(argv=None):
     except Interrupted as stop:
         if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK", "0")) \
                 == "0":
-            print(f"knitfem {command}: {stop} during set-up; nothing to restart "
-                  "from", flush=True)
+            print(f"knitfem {command}: {stop} during set-up, before any step",
+                  flush=True)
         return stop.code
 
 

@@ -251,7 +251,8 @@ class Checkpoint:
 
     x, v : all coordinates and velocities; t, step; stats : counters;
     fingerprint : dict; extra : dict of JSON values (rest-state measures,
-    t origin, the integrator's state); frames : [(title, P)] snapshots.
+    t origin, the integrator's ``state()``, whose numpy arrays come back as
+    lists); frames : [(title, P)] snapshots.
     """
 
     def __init__(self, x, v, t, step, fingerprint, stats, extra=None, frames=()):
@@ -272,7 +273,7 @@ class Checkpoint:
             f.attrs.update(format=FORMAT, t=self.t, step=self.step,
                            fingerprint=json.dumps(self.fingerprint),
                            stats=json.dumps(self.stats),
-                           extra=json.dumps(self.extra))
+                           extra=json.dumps(self.extra, default=_plain))
             f.flush()
 
     @classmethod
@@ -342,6 +343,12 @@ def restart_command(argv, checkpoint, ranks=1):
             args.append(a)
     head = ["mpirun", "-n", str(ranks)] if ranks > 1 else []
     return shlex.join(head + ["knitfem"] + args + ["-knit_restart", checkpoint])
+
+
+def _plain(value):
+    """numpy arrays and scalars as JSON lists and numbers (exact: Python
+    writes floats in their shortest round-trip form)."""
+    return value.tolist()
 
 
 def _show(value):

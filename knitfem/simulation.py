@@ -215,6 +215,7 @@ class Simulation:
         mpi = self.comm.tompi4py()
         xs = mpi.gather(self.x.getArray(readonly=True), root=0)
         vs = mpi.gather(self.v.getArray(readonly=True), root=0)
+        # an integrator's own state (same on every rank), e.g. its step size
         state = getattr(self.integrator, "state", None)
         extra = dict(initial_lowest=self.initial_lowest, t0=self.t0,
                      step0=self.step0, integrator=state() if state else None,
@@ -253,8 +254,12 @@ class Simulation:
         # one step from rest, thrown away, makes the solver's choices that
         # depend on the first matrix (MUMPS's analysis: pivot order, scaling)
         # those of the uninterrupted run, so the restart continues bit-exactly
+        # (if that step fails, as after a change of dt it may, so be it)
         x, v = self.x.copy(), self.v.copy()
-        self.integrator.step(0.0, x, v)
+        try:
+            self.integrator.step(0.0, x, v)
+        except (SimulationError, PETSc.Error):
+            pass
         x.destroy()
         v.destroy()
         lo, hi = self.x.getOwnershipRange()

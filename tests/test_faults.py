@@ -295,3 +295,40 @@ def test_disk_full(tmp_path):
         assert not [n for n in os.listdir(d) if n.startswith(".")]   # no debris
     finally:
         subprocess.run(["umount", str(d)])
+
+
+def test_integrator_state_travels_with_the_checkpoint(tmp_path):
+    from petsc4py import PETSc
+
+    from knitfem.model import FullModel, Material
+    from knitfem.simulation import Simulation
+    from helpers import jersey
+    from solvers.integrators import BackwardEuler
+
+    class Counting(BackwardEuler):
+        """An integrator with state beyond (t, x, v): its step count and a
+        next step size, as an adaptive integrator would keep."""
+
+        def __init__(self, system, dt):
+            super().__init__(system, dt)
+            self.calls, self.h_next = 0, np.array([dt / 3, 1.0])
+
+        def step(self, t, x, v):
+            self.calls += 1
+            return super().step(t, x, v)
+
+        def state(self):
+            return dict(calls=self.calls, h_next=self.h_next)
+
+        def set_state(self, state):
+            self.calls, self.h_next = state["calls"], np.asarray(state["h_next"])
+
+    model = FullModel(PETSc.COMM_SELF, jersey(2, 1, hold_top=True), Material())
+    first = Simulation(model, Counting(model, 1e-3), out=str(tmp_path / "a"),
+                       checkpoint_every=3, verbose=False, snapshots=())
+    first.run(0.003)
+    second = Simulation(model, Counting(model, 1e-3), out=str(tmp_path / "b"),
+                        verbose=False, snapshots=())
+    second.restart(str(tmp_path / "a" / "checkpoint.h5"))
+    assert second.integrator.calls == 3
+    assert np.array_equal(second.integrator.h_next, [1e-3 / 3, 1.0])
