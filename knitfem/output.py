@@ -219,6 +219,11 @@ class OutputDirectory:
             raise OutputError(err)
         return result
 
+    def remove(self, name):
+        """Remove a file of the directory if it is there (rank 0)."""
+        if os.path.exists(self.file(name)):
+            os.remove(self.file(name))
+
     def write_json(self, name, rec):
         """A JSON file, atomically (rank 0)."""
         def write(tmp):

@@ -365,6 +365,8 @@ class Simulation:
         interrupts.hold(True)
         try:
             if self.step_count == 0:
+                if self.output is not None:     # no summary of an earlier run
+                    self.output.rank0(self.output.remove, "summary.json")
                 self.write_output(*self.geometry())
             for n in range(nsteps):
                 self.at = (self.step_count + 1, self.t + dt)
@@ -389,7 +391,12 @@ class Simulation:
             summary = self.summary()
             self.write_summary(summary, "completed")
         except (SimulationError, output.OutputError, PETSc.Error) as err:
-            raise self.failure(err) from None
+            failure = self.failure(err)
+            self.write_summary(dict(steps=self.step_count, t_end=self.t,
+                                    newton_iterations=self.stats["newton"],
+                                    ksp_iterations=self.stats["ksp"]),
+                               f"failed: {failure}", quiet=True)
+            raise failure from None
         finally:
             interrupts.hold(False)
             self.close()
@@ -414,12 +421,18 @@ class Simulation:
                        .tolist())
         return self.comm.tompi4py().bcast(rec, root=0)
 
-    def write_summary(self, rec, status):
+    def write_summary(self, rec, status, quiet=False):
         """summary.json (atomically), with how the run ended and, after a
-        restart, the checkpoint it continued (collective)."""
-        if self.output is not None:
+        restart, the checkpoint it continued (collective). ``quiet``: a
+        failure to write it is not reported (a failure is being already)."""
+        if self.output is None:
+            return
+        try:
             self.output.write_json("summary.json", dict(
                 rec, status=status, restarted_from=self.restarted_from))
+        except output.OutputError:
+            if not quiet:
+                raise
 
     def close(self):
         """Draw the snapshot panel and release a directory claimed here."""

@@ -229,6 +229,8 @@ def test_blow_up_keeps_the_last_good_checkpoint(tmp_path):
     assert step == failed - 1                  # reported at the step it happened
     assert checkpoint(tmp_path / "checkpoint.prev.h5")[2] == failed - 2
     assert series(tmp_path)[0][0] == 0.0
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    assert rec["status"].startswith(f"failed: step {failed}")
 
 
 def test_petsc_error_in_a_step_is_one_line(tmp_path):
