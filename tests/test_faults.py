@@ -279,14 +279,23 @@ def test_sigterm_under_mpirun_all_ranks_stop_at_one_step(tmp_path):
     assert checkpoint(tmp_path / "checkpoint.h5")[2] == rec["steps"]
 
 
-@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root")
-def test_disk_full(tmp_path):
-    d = tmp_path / "small"
+@contextlib.contextmanager
+def small_tmpfs(d, size="400k"):
+    """A tmpfs of ``size`` mounted on ``d`` (root only; skips otherwise)."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
     d.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(d)],
-                      capture_output=True).returncode:
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs",
+                       str(d)], capture_output=True).returncode:
         pytest.skip("cannot mount a tmpfs here")
     try:
+        yield d
+    finally:
+        subprocess.run(["umount", str(d)])
+
+
+def test_disk_full(tmp_path):
+    with small_tmpfs(tmp_path / "small") as d:
         p = knitfem("-knit_t_end", "10", "-knit_output_every", "1",
                     "-knit_checkpoint_every", "5", "-o", str(d))
         line = one_line(p, 3)
@@ -295,8 +304,18 @@ def test_disk_full(tmp_path):
         x, v, step, _ = checkpoint(d / "checkpoint.h5")
         assert len(times) > 5 and step >= 5 and np.isfinite(x).all()
         assert not [n for n in os.listdir(d) if n.startswith(".")]   # no debris
-    finally:
-        subprocess.run(["umount", str(d)])
+
+
+def test_directory_made_read_only_mid_run(tmp_path):
+    with small_tmpfs(tmp_path / "ro", "20m") as d:
+        with started("-knit_t_end", "10", "-knit_output_every", "1",
+                     "-knit_checkpoint_every", "2", "-o", str(d)) as p:
+            wait_for(d / "yarns" / "00000003.h5")
+            subprocess.run(["mount", "-o", "remount,ro", str(d)], check=True)
+            line = one_line(finish(p), 3)
+        assert "Read-only file system" in line
+        times, _ = series(d)
+        assert len(times) >= 4 and checkpoint(d / "checkpoint.h5")[2] >= 2
 
 
 def test_integrator_state_travels_with_the_checkpoint(tmp_path):
