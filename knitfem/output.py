@@ -146,8 +146,8 @@ class OutputDirectory:
                 os.fsync(f.fileno())
 
         tmp = self.file(f".lock.{me['host']}.{me['pid']}.tmp")
-        write(tmp)
         try:
+            write(tmp)
             note = None
             for _ in range(2):
                 try:
@@ -158,7 +158,8 @@ class OutputDirectory:
                     note = self._stale(lock, me)
             raise KnitError(f"-o {self.path}: could not take the lock {lock}")
         finally:
-            os.remove(tmp)
+            if os.path.exists(tmp):
+                os.remove(tmp)
 
     def _stale(self, lock, me):
         """The lock exists: refuse if its run lives (or cannot be checked),
@@ -211,7 +212,7 @@ class OutputDirectory:
             except OSError as e:
                 err = (f"cannot write {e.filename or self.path}: "
                        f"{e.strerror or str(e).splitlines()[0]}")
-            except Exception as e:          # h5py reports some I/O errors so
+            except Exception as e:      # h5py raises some I/O errors as others
                 err = f"cannot write in {self.path}: {type(e).__name__}: {e}"
         if self.comm.size > 1:
             err = self.comm.tompi4py().bcast(err, root=0)
