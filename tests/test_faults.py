@@ -257,6 +257,16 @@ def test_signal_ends_with_checkpoint_summary_and_restart_command(tmp_path, sig, 
     assert not (tmp_path / ".knitfem.lock").exists()
 
 
+def test_second_ctrl_c_stops_at_once(tmp_path):
+    with started("-knit_t_end", "10", "-knit_output_every", "1", "-o",
+                 str(tmp_path)) as p:
+        wait_for(tmp_path / "yarns" / "00000003.h5")
+        p.send_signal(signal.SIGINT)
+        line = one_line(finish(p, signal.SIGINT), 130)
+    assert "interrupted by SIGINT" in line
+    assert len(series(tmp_path)[0]) >= 4          # the frames stay readable
+
+
 def test_signal_during_set_up(tmp_path):
     with started("-knit_rows", "12", "-knit_cols", "12", "-o", str(tmp_path)) as p:
         wait_for(tmp_path / ".knitfem.lock")
