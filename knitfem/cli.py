@@ -53,7 +53,7 @@ def main(argv=None):
         petsc4py.init([argv[0]] + [a for a in rest if a not in HELP])
         return _command(command, wants_help)
     except Interrupted as stop:
-        complain(f"knitfem {command}: {stop} during set-up; nothing to restart from")
+        complain(f"knitfem {command}: {stop} during set-up, before any step")
         return stop.code
 
 
@@ -72,6 +72,7 @@ def _command(command, wants_help):
                  f"{', '.join(COMMANDS)} (knitfem --help shows them)")
         return 2
     KnitOptions.help = wants_help
+    given = set(PETSc.Options().getAll())        # the user's, before any default
     from . import commands
 
     try:
@@ -89,8 +90,8 @@ def _command(command, wants_help):
         complain(f"knitfem {command}: internal error: {type(err).__name__}: "
                  f"{err} (KNITFEM_TRACEBACK=1 shows where)")
         return 1
-    if not wants_help:
-        left = [k for k in unused_options() if not k.startswith(OURS)]
+    if status == 0 and not wants_help:
+        left = [k for k in unused_options() if k in given and not k.startswith(OURS)]
         if left:
             complain(f"knitfem {command}: warning: PETSc option(s) not used "
                      f"(misspelt?): {' '.join('-' + k for k in left)}")

@@ -214,6 +214,8 @@ def run(comm):
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
+                            "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
                           "(Newton with pseudo-transient continuation, -static_snes_* "
                           "options)")
@@ -260,7 +262,7 @@ def run(comm):
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):
-            if method == "symplectic":
+            if method == "symplectic" and not unstable:
                 explicit_step_fits(system, dt)
             integrator = INTEGRATORS[method](system, dt)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
@@ -300,7 +302,8 @@ def explicit_step_fits(system, dt):
         raise SimulationError(f"-knit_dt {dt:g} is above the stable step of the symplectic "
                               f"integrator, 2/omega_max = {h:.3g} s for this yarn "
                               f"and model: use -knit_dt {float(f'{0.9 * h:.2g}'):g} "
-                              f"or -knit_integrator implicit")
+                              f"or -knit_integrator implicit (-knit_unstable_dt "
+                              f"runs it anyway)")
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):

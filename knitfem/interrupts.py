@@ -3,7 +3,8 @@
 During set-up a signal ends the run at once (``Interrupted``, exit 128 +
 signal number: 130, 143). While a run steps, it is held: the step finishes,
 every rank learns of it at the step's check (one reduction), and the run
-writes a final checkpoint and its summary before it stops.
+writes a final checkpoint and its summary before it stops. A second signal
+stops at once (the files stay whole: each is renamed into place).
 """
 
 import signal
@@ -23,10 +24,10 @@ _state = {"held": False, "pending": 0}
 
 
 def _handler(signum, frame):
-    if _state["held"]:
-        _state["pending"] = _state["pending"] or signum
+    if _state["held"] and not _state["pending"]:
+        _state["pending"] = signum
         return
-    raise Interrupted(signum)
+    raise Interrupted(signum)         # set-up, or a second signal: stop now
 
 
 def install():

@@ -42,12 +42,13 @@ FORMAT = 2
 
 # fingerprint entry -> the option that sets it (for the one-line refusal)
 FINGERPRINT_OPTIONS = {
-    "scene": "-knit_scene", "rows": "-knit_rows", "cols": "-knit_cols",
+    "scene": "-knit_scene", "model": "-knit_model", "rows": "-knit_rows",
+    "cols": "-knit_cols",
     "radius": "-knit_radius", "tilt": "-knit_tilt", "length": "-knit_length",
     "span": "-knit_span", "segments": "-knit_segments", "lod": "-knit_lod",
     "rho": "-knit_rho", "EA": "-knit_EA", "EI": "-knit_EI",
     "gravity": "-knit_gravity", "damping": "-knit_damping",
-    "quadrature": "-knit_quadrature", "model": "-knit_model",
+    "quadrature": "-knit_quadrature",
     "integrator": "-knit_integrator", "dt": "-knit_dt",
     "unknowns": "the model size", "geometry": "the rest geometry "
     "(-knit_volume or the pattern)", "version": "the knitfem version"}
@@ -145,8 +146,8 @@ class OutputDirectory:
                 os.fsync(f.fileno())
 
         tmp = self.file(f".lock.{me['host']}.{me['pid']}.tmp")
-        write(tmp)
         try:
+            write(tmp)
             note = None
             for _ in range(2):
                 try:
@@ -157,7 +158,8 @@ class OutputDirectory:
                     note = self._stale(lock, me)
             raise KnitError(f"-o {self.path}: could not take the lock {lock}")
         finally:
-            os.remove(tmp)
+            if os.path.exists(tmp):
+                os.remove(tmp)
 
     def _stale(self, lock, me):
         """The lock exists: refuse if its run lives (or cannot be checked),
@@ -210,13 +212,18 @@ class OutputDirectory:
             except OSError as e:
                 err = (f"cannot write {e.filename or self.path}: "
                        f"{e.strerror or str(e).splitlines()[0]}")
-            except Exception as e:          # h5py reports some I/O errors so
+            except Exception as e:      # h5py raises some I/O errors as others
                 err = f"cannot write in {self.path}: {type(e).__name__}: {e}"
         if self.comm.size > 1:
             err = self.comm.tompi4py().bcast(err, root=0)
         if err:
             raise OutputError(err)
         return result
+
+    def remove(self, name):
+        """Remove a file of the directory if it is there (rank 0)."""
+        if os.path.exists(self.file(name)):
+            os.remove(self.file(name))
 
     def write_json(self, name, rec):
         """A JSON file, atomically (rank 0)."""
@@ -228,24 +235,18 @@ class OutputDirectory:
 
     # -- checkpoints ---------------------------------------------------------
     def write_checkpoint(self, ckpt):
-        """Rank 0 writes ``ckpt`` to a temporary, then keeps the previous
-        checkpoint as checkpoint.prev.h5 and renames the new one into place.
-        A non-finite state is refused before anything is touched."""
+        """Rank 0 keeps the previous checkpoint as checkpoint.prev.h5 (a hard
+        link renamed into place) and writes ``ckpt`` to a temporary renamed
+        over checkpoint.h5. A non-finite state is refused before anything is
+        touched."""
         def write():
             if not (np.isfinite(ckpt.x).all() and np.isfinite(ckpt.v).all()):
                 raise OutputError("the state is not finite; the last checkpoint "
                                   "is kept")
             path = self.file(CHECKPOINT)
-            tmp = self.file(f".{CHECKPOINT}.{socket.gethostname()}.{os.getpid()}.tmp")
-            try:
-                ckpt.save(tmp)
-                if os.path.exists(path):
-                    os.replace(path, self.file(PREVIOUS))
-                os.replace(tmp, path)
-            except BaseException:
-                if os.path.exists(tmp):
-                    os.remove(tmp)
-                raise
+            if os.path.exists(path):        # checkpoint.h5 never goes missing
+                io.atomic_write(self.file(PREVIOUS), lambda tmp: os.link(path, tmp))
+            io.atomic_write(path, ckpt.save)
 
         self.rank0(write)
         return self.file(CHECKPOINT)
@@ -256,7 +257,8 @@ class Checkpoint:
 
     x, v : all coordinates and velocities; t, step; stats : counters;
     fingerprint : dict; extra : dict of JSON values (rest-state measures,
-    t origin, the integrator's state); frames : [(title, P)] snapshots.
+    t origin, the integrator's ``state()``, whose numpy arrays come back as
+    lists); frames : [(title, P)] snapshots.
     """
 
     def __init__(self, x, v, t, step, fingerprint, stats, extra=None, frames=()):
@@ -277,7 +279,7 @@ class Checkpoint:
             f.attrs.update(format=FORMAT, t=self.t, step=self.step,
                            fingerprint=json.dumps(self.fingerprint),
                            stats=json.dumps(self.stats),
-                           extra=json.dumps(self.extra))
+                           extra=json.dumps(self.extra, default=_plain))
             f.flush()
 
     @classmethod
@@ -347,6 +349,12 @@ def restart_command(argv, checkpoint, ranks=1):
             args.append(a)
     head = ["mpirun", "-n", str(ranks)] if ranks > 1 else []
     return shlex.join(head + ["knitfem"] + args + ["-knit_restart", checkpoint])
+
+
+def _plain(value):
+    """numpy arrays and scalars as JSON lists and numbers (exact: Python
+    writes floats in their shortest round-trip form)."""
+    return value.tolist()
 
 
 def _show(value):

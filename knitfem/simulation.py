@@ -215,6 +215,7 @@ class Simulation:
         mpi = self.comm.tompi4py()
         xs = mpi.gather(self.x.getArray(readonly=True), root=0)
         vs = mpi.gather(self.v.getArray(readonly=True), root=0)
+        # an integrator's own state (same on every rank), e.g. its step size
         state = getattr(self.integrator, "state", None)
         extra = dict(initial_lowest=self.initial_lowest, t0=self.t0,
                      step0=self.step0, integrator=state() if state else None,
@@ -253,8 +254,12 @@ class Simulation:
         # one step from rest, thrown away, makes the solver's choices that
         # depend on the first matrix (MUMPS's analysis: pivot order, scaling)
         # those of the uninterrupted run, so the restart continues bit-exactly
+        # (if that step fails, as after a change of dt it may, so be it)
         x, v = self.x.copy(), self.v.copy()
-        self.integrator.step(0.0, x, v)
+        try:
+            self.integrator.step(0.0, x, v)
+        except (SimulationError, PETSc.Error):
+            pass
         x.destroy()
         v.destroy()
         lo, hi = self.x.getOwnershipRange()
@@ -306,8 +311,9 @@ class Simulation:
             self.r.axpy(-1.0, s.d)
             r = self.r.getArray(readonly=True)
             drift = float(np.abs(r).max()) if r.size else 0.0
-        bad, drift, signum = self.comm.tompi4py().allreduce(
-            np.array([float(bad), drift, float(interrupts.pending())]), op=MPI.MAX)
+        flags = np.array([float(bad), drift, float(interrupts.pending())])
+        self.comm.tompi4py().Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+        bad, drift, signum = flags
         if bad or not np.isfinite(drift):
             raise SimulationError("the state is not finite (NaN or inf)")
         if drift > self.drift_tol:
@@ -365,6 +371,8 @@ class Simulation:
         interrupts.hold(True)
         try:
             if self.step_count == 0:
+                if self.output is not None:     # no summary of an earlier run
+                    self.output.rank0(self.output.remove, "summary.json")
                 self.write_output(*self.geometry())
             for n in range(nsteps):
                 self.at = (self.step_count + 1, self.t + dt)
@@ -389,7 +397,12 @@ class Simulation:
             summary = self.summary()
             self.write_summary(summary, "completed")
         except (SimulationError, output.OutputError, PETSc.Error) as err:
-            raise self.failure(err) from None
+            failure = self.failure(err)
+            self.write_summary(dict(steps=self.step_count, t_end=self.t,
+                                    newton_iterations=self.stats["newton"],
+                                    ksp_iterations=self.stats["ksp"]),
+                               f"failed: {failure}", quiet=True)
+            raise failure from None
         finally:
             interrupts.hold(False)
             self.close()
@@ -414,12 +427,18 @@ class Simulation:
                        .tolist())
         return self.comm.tompi4py().bcast(rec, root=0)
 
-    def write_summary(self, rec, status):
+    def write_summary(self, rec, status, quiet=False):
         """summary.json (atomically), with how the run ended and, after a
-        restart, the checkpoint it continued (collective)."""
-        if self.output is not None:
+        restart, the checkpoint it continued (collective). ``quiet``: a
+        failure to write it is not reported (a failure is being already)."""
+        if self.output is None:
+            return
+        try:
             self.output.write_json("summary.json", dict(
                 rec, status=status, restarted_from=self.restarted_from))
+        except output.OutputError:
+            if not quiet:
+                raise
 
     def close(self):
         """Draw the snapshot panel and release a directory claimed here."""
