@@ -259,12 +259,15 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
                    const double[:, :, ::1] D, const double[:, ::1] Xp2,
                    const double[:, ::1] W, const double[:, ::1] kappa0,
                    double EA, double EI, double delta,
-                   const int64_t[:, ::1] slot, double[::1] values):
-    """values = Σ_e K_e scattered by slot (ne, 144): values[slot[e, 12m + n]]
-    += K_e[m, n]; values is zeroed first."""
+                   const int64_t[:, :, ::1] block, const int64_t[:, ::1] stride,
+                   double[::1] values):
+    """values = Σ_e K_e, zeroed first: the 3 × 3 block (a, b) of K_e is added
+    at values[block[e, a, b] + stride[e, a] i + j] (CSR rows of one control
+    point are ``stride`` apart)."""
     cdef double K[144]
     cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
-    cdef int m
+    cdef int a, b, i, j
+    cdef double *v
     if values.shape[0]:
         memset(&values[0], 0, values.shape[0] * sizeof(double))
     if ne == 0:
@@ -273,8 +276,12 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
         for e in range(ne):
             element_hessian(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
                             &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, K)
-            for m in range(144):
-                values[slot[e, m]] += K[m]
+            for a in range(4):
+                for b in range(4):
+                    v = &values[block[e, a, b]]
+                    for i in range(3):
+                        for j in range(3):
+                            v[stride[e, a] * i + j] += K[12 * (3 * a + i) + 3 * b + j]
 
 
 cdef extern from *:

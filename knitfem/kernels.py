@@ -71,13 +71,16 @@ class CompiledKernels:
                      np.ascontiguousarray(el.D), np.ascontiguousarray(el.Xp2),
                      np.ascontiguousarray(el.W), np.ascontiguousarray(el.kappa0),
                      el.EA, el.EI, el.delta)
+        self.slot = None
 
     def add_gradient(self, x, out, scale=1.0):
         self.module.add_gradient(np.ascontiguousarray(x), *self.args, scale, out)
 
     def hessian_values(self, x, slot, values):
-        self.module.hessian_values(np.ascontiguousarray(x), *self.args,
-                                   slot.reshape(self.ne, 144), values)
+        if self.slot is not slot:
+            self.slot, self.blocks = slot, block_slots(slot)
+        self.module.hessian_values(np.ascontiguousarray(x), *self.args, *self.blocks,
+                                   values)
 
     def element_gradient(self, x):
         out = np.empty((self.ne, 12))
@@ -88,6 +91,22 @@ class CompiledKernels:
         out = np.empty((self.ne, 12, 12))
         self.module.element_hessians(np.ascontiguousarray(x), *self.args, out)
         return out
+
+
+def block_slots(slot):
+    """(block, stride) of element slots (ne, 12, 12) made of 3 × 3 blocks laid
+    out as rows ``stride`` apart: slot[e, 3a + i, 3b + j] = block[e, a, b] +
+    stride[e, a] i + j (as ``ElementPattern.blocks3`` gives them)."""
+    s = slot.reshape(-1, 4, 3, 4, 3)
+    block = np.ascontiguousarray(s[:, :, 0, :, 0], dtype=np.int64)
+    stride = np.ascontiguousarray(s[:, :, 1, 0, 0] - s[:, :, 0, 0, 0], dtype=np.int64)
+    i, j = np.arange(3)[:, None], np.arange(3)
+    expect = (block[:, :, None, :, None] + stride[:, :, None, None, None]
+              * i[None, None, :, None, :] + j[None, None, None, None, :])
+    if not np.array_equal(s, expect):
+        raise ValueError("element slots are not made of 3 x 3 blocks with "
+                         "unit-stride rows")
+    return block, stride
 
 
 def yarn_kernels(elements, kind="compiled"):

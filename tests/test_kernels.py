@@ -12,6 +12,7 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import jersey, to_scipy
+from knitfem.assembly import ElementPattern
 from knitfem.kernels import KINDS, yarn_kernels
 from knitfem.model import FullModel, Material
 from knitfem.options import KnitError
@@ -47,17 +48,24 @@ def test_element_gradient_and_hessian_equal_reference(case):
 def test_assembled_gradient_and_values_equal_reference(case):
     y, x = elements(case)
     start = np.random.default_rng(5).normal(size=(y.ncp, 3))
-    slot = np.arange(y.ne * 144).reshape(y.ne, 12, 12) % (7 * y.ne)  # shared slots
+    _, indices3, slot = ElementPattern(y.conn, 0, y.ncp).blocks3()
     out, values = {}, {}
     for kind in KINDS:
         k = yarn_kernels(y, kind)
         out[kind] = start.copy()
         k.add_gradient(x, out[kind], -2.5)
-        values[kind] = np.full(7 * y.ne, np.nan)
+        values[kind] = np.full(len(indices3), np.nan)
         k.hessian_values(x, slot, values[kind])
     assert relative(out["compiled"], out["numpy"]) < TOL
     assert relative(out["numpy"], start - 2.5 * y.gradient(x)) < TOL
     assert relative(values["compiled"], values["numpy"]) < TOL
+
+
+def test_block_slots_refuse_other_layouts():
+    y, _ = elements("helices")
+    slot = np.random.default_rng(0).permutation(y.ne * 144).reshape(y.ne, 12, 12)
+    with pytest.raises(ValueError, match="3 x 3 blocks"):
+        yarn_kernels(y, "compiled").hessian_values(y.X, slot, np.zeros(y.ne * 144))
 
 
 def test_unknown_kind_is_refused():
