@@ -113,6 +113,7 @@ def test_kill9_then_restart_equals_uninterrupted(tmp_path):
                     str(d / "checkpoint.h5"), "-o", str(d))
     assert again.returncode == 0, again.stdout + again.stderr
     assert "took over" in again.stdout and not (d / ".knitfem.lock").exists()
+    assert not [n for n in os.listdir(d) if n.startswith(".")]
     a, b = (json.loads((tmp_path / n / "summary.json").read_text()) for n in "uk")
     for key in ("sag", "newton_iterations", "ksp_iterations", "centroid", "steps",
                 "t_end"):
