@@ -113,7 +113,8 @@ class OutputDirectory:
 
     # -- the claim ----------------------------------------------------------
     def claim(self):
-        """Create the directory and take its lock (collective)."""
+        """Create the directory, take its lock and remove temporaries a
+        killed run left there (collective)."""
         if self.owner is not None:
             return self
         err = note = None
@@ -121,6 +122,9 @@ class OutputDirectory:
             try:
                 os.makedirs(self.path, exist_ok=True)
                 note = self._take()
+                for name in os.listdir(self.path):   # left by a run killed
+                    if name.startswith(".") and ".tmp" in name:
+                        os.remove(self.file(name))
             except KnitError as e:
                 err = str(e)
             except OSError as e:

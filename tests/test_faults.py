@@ -113,6 +113,7 @@ def test_kill9_then_restart_equals_uninterrupted(tmp_path):
                     str(d / "checkpoint.h5"), "-o", str(d))
     assert again.returncode == 0, again.stdout + again.stderr
     assert "took over" in again.stdout and not (d / ".knitfem.lock").exists()
+    assert not [n for n in os.listdir(d) if n.startswith(".")]
     a, b = (json.loads((tmp_path / n / "summary.json").read_text()) for n in "uk")
     for key in ("sag", "newton_iterations", "ksp_iterations", "centroid", "steps",
                 "t_end"):
@@ -366,3 +367,21 @@ def test_integrator_state_travels_with_the_checkpoint(tmp_path):
     second.restart(str(tmp_path / "a" / "checkpoint.h5"))
     assert second.integrator.calls == 3
     assert np.array_equal(second.integrator.h_next, [1e-3 / 3, 1.0])
+
+
+def test_mumps_workspace_error_names_the_option():
+    from solvers.petsc_errors import petsc_failure
+
+    class Error(Exception):                  # the text PETSc 3.18 gives
+        ierr = 76
+
+        def __str__(self):
+            return ("error code 76\n[0] SNESSolve() at snes.c:4692\n"
+                    "[0] MatFactorNumeric_MUMPS() at mumps.c:1683\n"
+                    "[0] Error in external library\n[0] Error reported by MUMPS "
+                    "in numerical factorization phase: INFOG(1)=-9, INFO(2)=19258")
+
+    line = petsc_failure(Error(), "full_")
+    assert line.startswith("PETSc error 76 in the -full_ solver (Error reported by "
+                           "MUMPS in numerical factorization phase: INFOG(1)=-9")
+    assert "raise -full_mat_mumps_icntl_14" in line and "\n" not in line
