@@ -20,6 +20,24 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape())
 
 
+def pull_from_options(opts, jersey):
+    """(stitch, force) of the pulled scene: -knit_pull_stitch c,r and
+    -knit_pull_force fx,fy,fz [N]."""
+    stitch = opts.getInts("pull_stitch", (jersey.cols // 2, 0),
+                          "pulled scene: stitch (column, course) whose loop head "
+                          "is pulled", 2, 0)
+    raw = opts.getString("pull_force", "0,-0.005,0", "pulled scene: point force "
+                         "fx,fy,fz [N]")
+    try:
+        force = [float(v) for v in raw.split(",")]
+    except ValueError:
+        force = []
+    if len(force) != 3 or not np.all(np.isfinite(force)):
+        raise KnitError(f"-knit_pull_force {raw!r}: expected three numbers "
+                        "fx,fy,fz in newtons")
+    return stitch, force
+
+
 def output_dir(default):
     """The -o DIR option, created on rank 0."""
     path = PETSc.Options().getString("o", default)
@@ -137,7 +155,7 @@ def build_system(comm, opts, fabric, material):
         stage.pop()
 
 
-VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
+VIEWS = {"hanging": "side", "pulled": "oblique", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 
@@ -145,6 +163,7 @@ def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
     from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
 
+    from .adapt import adaptation_from_options
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
 
@@ -159,6 +178,7 @@ def run(comm):
                        "cantilever)", 1)
     tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
                         "held course (hanging: 90 horizontal, 0 hanging)")
+    pull = pull_from_options(opts, jersey)
     material = material_from_options(opts)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
@@ -181,7 +201,8 @@ def run(comm):
                         "times in seconds") from None
     out = output_dir(f"out/{scene}")
     try:
-        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt)
+        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt,
+                             pull)
     except ValueError as err:
         raise KnitError(str(err)) from None
     system = build_system(comm, opts, fabric, material)
@@ -193,16 +214,21 @@ def run(comm):
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
     with PETSc.Log.Stage("Solver set-up"):
         integrator = INTEGRATORS[method](system, dt)
+        adapt = adaptation_from_options(opts, system)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
-                     view=VIEWS[scene])
+                     view=VIEWS[scene], adapt=adapt)
     if restart:
         sim.restart(restart)
+    if adapt is not None:
+        adapt(sim)                   # the indicator (and regions) at the start
     try:
         rec = sim.run(t_end)
     except SimulationError as err:
         PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in {out})")
         return 3
+    if adapt is not None:
+        adapt.report(sim, out)
     PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
                     f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
                     f"{rec['sag']:.4g} m; summary in {out}/summary.json")

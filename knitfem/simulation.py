@@ -37,11 +37,12 @@ class Simulation:
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
-                 view="oblique"):
+                 view="oblique", adapt=None):
         self.system, self.integrator, self.out, self.scene = system, integrator, out, scene
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.verbose, self.view = verbose, view
+        self.adapt = adapt          # called after every step (knitfem.adapt)
         self.comm = system.comm
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
@@ -212,6 +213,8 @@ class Simulation:
                 self.t = self.step_count * dt
                 for k in st:
                     self.stats[k] += st[k]
+                if self.adapt is not None:
+                    self.adapt(self)
                 last = self.step_count == int(round(t_end / dt))
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
