@@ -263,6 +263,7 @@ class Adaptation:
         old.space.destroy()
         old.destroy()
         self.patches = patches.copy()
+        self.history[-1].update(patches=patches.copy(), unknowns=n_new)
 
     # -- report ----------------------------------------------------------------
     def record(self):

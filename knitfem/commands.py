@@ -155,7 +155,7 @@ def build_system(comm, opts, fabric, material):
         stage.pop()
 
 
-VIEWS = {"hanging": "side", "pulled": "oblique", "freefall": "oblique", "catenary": "front",
+VIEWS = {"hanging": "side", "pulled": "front", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 

@@ -215,3 +215,54 @@ def test_transfer_keeps_momentum(patches):
         if rhs is not None:
             r.axpy(-1.0, rhs)
         assert r.norm(PETSc.NormType.INFINITY) < 1e-12 * scale
+
+
+# -- the command line ------------------------------------------------------------
+def knitfem_run(*args):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(__file__)))
+    return subprocess.run([sys.executable, "-m", "knitfem.cli", "run", *args,
+                           "-skip_petscrc"], capture_output=True, text=True,
+                          env=env, timeout=300)
+
+
+serial_only = pytest.mark.skipif(COMM.size > 1, reason="runs knitfem in subprocesses")
+
+
+@serial_only
+def test_adaptive_run_writes_indicator(tmp_path):
+    """knitfem run -knit_scene pulled -knit_model mixed -knit_adapt: the pulled
+    patch is refined at the start, logged, and the indicator is in
+    summary.json and indicator.png."""
+    import json
+
+    p = knitfem_run("-knit_scene", "pulled", "-knit_rows", "6", "-knit_cols", "9",
+                    "-knit_lod", "6,5", "-knit_model", "mixed", "-knit_adapt",
+                    "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.02",
+                    "-knit_snapshots", "0.02", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    assert rec["model"] == "mixed" and rec["adapt"]["events"][0]["refined"] == [[1, 0]]
+    eta = np.array(rec["indicator_last"]["eta"])
+    assert eta.shape == (3, 2) and np.all(eta > 0)
+    assert rec["adapt"]["unknowns_max"] == rec["unknowns"] < 3 * 6 * 75 * 0.5
+    assert (tmp_path / "indicator.png").stat().st_size > 0
+
+
+@serial_only
+@pytest.mark.parametrize("args,message", [
+    (["-knit_model", "reduced", "-knit_adapt"], "-knit_adapt needs -knit_model mixed"),
+    (["-knit_model", "mixed", "-knit_full_region", "0:9,1:2"], "outside"),
+    (["-knit_model", "mixed", "-knit_full_regions", "/nonexistent"], "No such file"),
+    (["-knit_scene", "pulled", "-knit_pull_force", "1,2"], "three numbers"),
+])
+def test_bad_input_is_one_line(args, message, tmp_path):
+    p = knitfem_run("-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",
+                    "-o", str(tmp_path), *args)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert message in p.stdout + p.stderr
+    assert "Traceback" not in p.stderr
