@@ -20,6 +20,24 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape())
 
 
+def pull_from_options(opts, jersey):
+    """(stitch, force) of the pulled scene: -knit_pull_stitch c,r and
+    -knit_pull_force fx,fy,fz [N]."""
+    stitch = opts.getInts("pull_stitch", (jersey.cols // 2, 0),
+                          "pulled scene: stitch (column, course) whose loop head "
+                          "is pulled", 2, 0)
+    raw = opts.getString("pull_force", "0,-0.005,0", "pulled scene: point force "
+                         "fx,fy,fz [N]")
+    try:
+        force = [float(v) for v in raw.split(",")]
+    except ValueError:
+        force = []
+    if len(force) != 3 or not np.all(np.isfinite(force)):
+        raise KnitError(f"-knit_pull_force {raw!r}: expected three numbers "
+                        "fx,fy,fz in newtons")
+    return stitch, force
+
+
 def output_dir(path):
     """Create the output directory (-o DIR) on rank 0."""
     if PETSc.COMM_WORLD.rank == 0:
@@ -170,7 +188,7 @@ implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
 -log_view, -options_file FILE. Example:
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
-VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
+VIEWS = {"hanging": "side", "pulled": "front", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 
@@ -194,6 +212,7 @@ def run(comm):
     from solvers.integrators import INTEGRATORS, SimulationError
     from solvers.statics import StaticSolver
 
+    from .adapt import adapt_options, adaptation_from_options
     from .interrupts import Interrupted
     from .output import CHANGEABLE, OutputDirectory
     from .scenes import SCENES, make_fabric
@@ -210,6 +229,7 @@ def run(comm):
                        "cantilever)", 1)
     tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
                         "held course (hanging: 90 horizontal, 0 hanging)")
+    pull = pull_from_options(opts, jersey)
     material = material_from_options(opts)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
@@ -242,6 +262,7 @@ def run(comm):
             raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
                             + ", ".join(CHANGEABLE))
     model_options(opts)
+    adapt_options(opts)
     path = opts.getOutput(f"out/{scene}")
     if opts.finish("knitfem run", RUN_HELP_FOOTER):
         return
@@ -251,7 +272,7 @@ def run(comm):
     try:
         try:
             fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
-                                 tilt)
+                                 tilt, pull)
         except ValueError as err:
             raise KnitError(str(err)) from None
         system = build_system(comm, opts, fabric, material)
@@ -265,6 +286,7 @@ def run(comm):
             if method == "symplectic" and not unstable:
                 explicit_step_fits(system, dt)
             integrator = INTEGRATORS[method](system, dt)
+            adapt = adaptation_from_options(opts, system)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
         problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
                                 PETSc.Options().getInt("knit_quadrature", 4),
@@ -272,9 +294,11 @@ def run(comm):
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
-                         command=sys.argv)
+                         command=sys.argv, adapt=adapt)
         if restart:
             sim.restart(restart, change)
+        if adapt is not None:
+            adapt(sim)                   # the indicator (and regions) at the start
         try:
             rec = sim.run(t_end)
         except SimulationError as err:
@@ -284,6 +308,8 @@ def run(comm):
         except Interrupted as stop:
             PETSc.Sys.Print(f"knitfem run: {stop}")
             return stop.code
+        if adapt is not None:
+            adapt.report(sim, out.path)
         PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
                         f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
                         f"{rec['sag']:.4g} m; summary in {out.path}/summary.json")

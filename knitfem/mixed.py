@@ -195,14 +195,15 @@ class MixedModel:
 
     Offers the interface of ``ReducedModel`` (M, m, C, c, d, Qg, forces,
     stiffness, rest_state, full_state, project, …) with q = [α; ε_F].
-    Collective.
+    ``reduced`` is the reduced model's ``Embedding`` of the same volume,
+    kept for the error indicator. Collective.
     """
 
     kind = "mixed"
     dense_saddle = False
 
-    def __init__(self, full, space):
-        self.full, self.space, self.embedding = full, space, space
+    def __init__(self, full, space, reduced=None):
+        self.full, self.space, self.reduced = full, space, reduced
         self.comm, self.material = full.comm, full.material
         self.total_mass = full.total_mass
         self.fabric, self.layout = full.fabric, full.layout
@@ -415,4 +416,5 @@ def mixed_from_options(opts, full, embedding):
     weights = VolumeWeights(full.fabric, embedding.volume)
     mask = stitch_mask(full.fabric, regions_from_options(opts, full.fabric))
     mask = weights.patch_mask(weights.patches_of(mask))
-    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask))
+    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask),
+                      embedding)

@@ -107,6 +107,8 @@ class FullModel:
             G = self.M.createVecRight()
             G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
             self.M.mult(G, self.Qg)
+            self.Qg.getArray()[:] += fabric.load_vector(   # point loads
+                lay.yarn_start, lay.yarn_end).ravel()
             G.destroy()
             self.total_mass = self.m.getRowSum().sum()
         for A, name in ((self.m, "full_m_"), (self.M, "full_M_"),

@@ -53,7 +53,7 @@ class Simulation:
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
-                 view="oblique", problem=None, command=None):
+                 view="oblique", problem=None, command=None, adapt=None):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -65,6 +65,7 @@ class Simulation:
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.verbose, self.view = verbose, view
+        self.adapt = adapt          # called after every step (knitfem.adapt)
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
         self.t, self.step_count, self.stats = 0.0, 0, {"newton": 0, "ksp": 0}
@@ -361,6 +362,8 @@ class Simulation:
                 self.t = self.t0 + (self.step_count - self.step0) * dt
                 for k in st:
                     self.stats[k] += st[k]
+                if self.adapt is not None:
+                    self.adapt(self)
                 signum = self.guard()
                 last = n == nsteps - 1
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9

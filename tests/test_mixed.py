@@ -133,3 +133,137 @@ def test_parallel_equals_serial(fabric):
 def test_bad_region_is_one_line(text):
     with pytest.raises(KnitError, match="c0:c1,r0:r1|outside|empty"):
         parse_regions(text, "-knit_full_region", 3, 4)
+
+
+# -- point loads, the indicator, adaptation ------------------------------------
+def test_point_load_vector_sums_to_the_force():
+    """Σ_a b_a(u) F over the four control points is F (partition of unity),
+    and its moment about the origin is P(s) × F (linear precision)."""
+    from knitfem.pattern import Jersey
+    from knitfem.scenes import pulled
+
+    j = Jersey(3, 4)
+    F = np.array([0.1, -0.3, 0.2])
+    fab = pulled(j, (2, 1), F)
+    Q = fab.load_vector(0, fab.nyarn)
+    assert np.allclose(Q.sum(0), F, rtol=0, atol=1e-15)
+    X = fab.X.reshape(-1, 3)
+    P = X[np.abs(Q).sum(1) > 0].T @ np.abs(Q[np.abs(Q).sum(1) > 0, :1]) / abs(F[0])
+    from knitfem import bspline
+    head = bspline.curve_points(fab.X[1], j.heads(1)[[2]])[0]
+    assert np.allclose(P.ravel(), head, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="outside"):
+        pulled(j, (4, 0), F)
+
+
+def indicator(fabric, lod=LOD):
+    from knitfem.adapt import Indicator
+
+    full, red = models(COMM, fabric, lod=lod)
+    return full, red, Indicator(full, red.embedding,
+                                VolumeWeights(fabric, red.embedding.volume))
+
+
+def test_indicator_vanishes_in_range_and_sees_a_point_load():
+    """Free fabric at rest under gravity: the full model's acceleration is g
+    everywhere, in range(Γ), so η = 0 and δ = 0 to round-off. A point load
+    makes η largest on the loaded patch."""
+    from knitfem.pattern import Jersey
+    from knitfem.scenes import pulled
+
+    full, _, ind = indicator(jersey(6, 6))
+    eta, dist = ind(full.rest_state())
+    # round-off of stiff, light yarns: EA ε_mach / (ρ h) ≈ 1e-6 m/s²
+    assert eta.max() < 1e-5 * 9.81 and dist.max() < 1e-10
+    fab = pulled(Jersey(6, 6), (4, 4), (0.0, 0.0, 1e-3))
+    fab.fixed = (np.zeros(0, int), np.zeros(0))
+    full, _, ind = indicator(fab)
+    eta, _ = ind(full.rest_state())
+    assert np.unravel_index(np.argmax(eta), eta.shape) == (1, 1)
+    assert eta.max() > 10 * np.median(eta)
+
+
+@pytest.mark.parametrize("patches", [[[True, False], [False, False]],
+                                     [[True, True], [True, False]]])
+def test_transfer_keeps_momentum(patches):
+    """Refine and coarsen a free fabric in motion: linear momentum 1ᵀMε̇ is
+    kept to round-off (contacts are internal), and the transferred state
+    satisfies the new constraints."""
+    from knitfem.adapt import transfer
+
+    fab = jersey(6, 6)
+    full, red = models(COMM, fab, lod=LOD)
+    w = VolumeWeights(fab, red.embedding.volume)
+    start = mixed(full, red, w.patch_mask(np.array([[False, True], [False, False]])))
+    x, v = start.rest_state(), start.rest_state()
+    rng = np.random.default_rng(3)
+    x.getArray()[:] += 1e-2 * fab.radius * rng.standard_normal(x.getLocalSize())
+    v.getArray()[:] = 0.1 + 0.01 * rng.standard_normal(v.getLocalSize())
+    new = mixed(full, red, w.patch_mask(np.array(patches)))
+    x2, v2 = transfer(start, new, x, v)
+
+    def momentum(system, vel):
+        ev, Mv = system.full_state(vel), full.M.createVecLeft()
+        full.M.mult(ev, Mv)
+        return COMM.tompi4py().allreduce(Mv.getArray().reshape(-1, 3).sum(0))
+
+    p0, p1 = momentum(start, v), momentum(new, v2)
+    assert np.abs(p0).min() > 1e-3 * full.total_mass
+    assert np.allclose(p1, p0, rtol=1e-12, atol=0)
+    for state, rhs, scale in ((x2, new.d, fab.radius), (v2, None, 0.1)):
+        r = new.C.createVecLeft()
+        new.C.mult(state, r)
+        if rhs is not None:
+            r.axpy(-1.0, rhs)
+        assert r.norm(PETSc.NormType.INFINITY) < 1e-12 * scale
+
+
+# -- the command line ------------------------------------------------------------
+def knitfem_run(*args):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(__file__)))
+    return subprocess.run([sys.executable, "-m", "knitfem.cli", "run", *args,
+                           "-skip_petscrc"], capture_output=True, text=True,
+                          env=env, timeout=300)
+
+
+serial_only = pytest.mark.skipif(COMM.size > 1, reason="runs knitfem in subprocesses")
+
+
+@serial_only
+def test_adaptive_run_writes_indicator(tmp_path):
+    """knitfem run -knit_scene pulled -knit_model mixed -knit_adapt: the pulled
+    patch is refined at the start, logged, and the indicator is in
+    summary.json and indicator.png."""
+    import json
+
+    p = knitfem_run("-knit_scene", "pulled", "-knit_rows", "6", "-knit_cols", "9",
+                    "-knit_lod", "6,5", "-knit_model", "mixed", "-knit_adapt",
+                    "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.02",
+                    "-knit_snapshots", "0.02", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    assert rec["model"] == "mixed" and rec["adapt"]["events"][0]["refined"] == [[1, 0]]
+    eta = np.array(rec["indicator_last"]["eta"])
+    assert eta.shape == (3, 2) and np.all(eta > 0)
+    assert rec["adapt"]["unknowns_max"] == rec["unknowns"] < 3 * 6 * 75 * 0.5
+    assert (tmp_path / "indicator.png").stat().st_size > 0
+
+
+@serial_only
+@pytest.mark.parametrize("args,message", [
+    (["-knit_model", "reduced", "-knit_adapt"], "-knit_adapt needs -knit_model mixed"),
+    (["-knit_model", "mixed", "-knit_full_region", "0:9,1:2"], "outside"),
+    (["-knit_model", "mixed", "-knit_full_regions", "/nonexistent"], "No such file"),
+    (["-knit_scene", "pulled", "-knit_pull_force", "1,2"], "three numbers"),
+])
+def test_bad_input_is_one_line(args, message, tmp_path):
+    p = knitfem_run("-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",
+                    "-o", str(tmp_path), *args)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert message in p.stdout + p.stderr
+    assert "Traceback" not in p.stderr
