@@ -247,9 +247,12 @@ class OutputDirectory:
             if not (np.isfinite(ckpt.x).all() and np.isfinite(ckpt.v).all()):
                 raise OutputError("the state is not finite; the last checkpoint "
                                   "is kept")
-            path = self.file(CHECKPOINT)
-            if os.path.exists(path):        # checkpoint.h5 never goes missing
-                io.atomic_write(self.file(PREVIOUS), lambda tmp: os.link(path, tmp))
+            path, prev = self.file(CHECKPOINT), self.file(PREVIOUS)
+            # checkpoint.h5 never goes missing; both names are one file when a
+            # run was killed between the two renames (rename would do nothing)
+            if os.path.exists(path) and not (os.path.exists(prev)
+                                             and os.path.samefile(path, prev)):
+                io.atomic_write(prev, lambda tmp: os.link(path, tmp))
             io.atomic_write(path, ckpt.save)
 
         self.rank0(write)
