@@ -160,7 +160,7 @@ implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
 -log_view, -options_file FILE. Example:
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
-VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
+VIEWS = {"hanging": "three_quarter", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 
@@ -193,7 +193,11 @@ def run(comm):
     load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
-    snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
+    snaps = opts.getString("snapshots", "0,0.4,1,2,3", "times of the PNG snapshots "
+                           "[s]")
+    movie = opts.getString("animation", "auto", "GIF of the output frames in the "
+                           "output directory (auto: <scene>.gif up to 1e5 "
+                           "coordinates; none: no GIF)")
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
@@ -224,9 +228,12 @@ def run(comm):
         if method == "symplectic":
             explicit_step_fits(system, dt)
         integrator = INTEGRATORS[method](system, dt)
+    if movie == "auto":
+        movie = f"{scene}.gif" if system.full_state(system.rest_state()).getSize() \
+            <= 100000 else ""
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
-                     view=VIEWS[scene])
+                     view=VIEWS[scene], animation="" if movie == "none" else movie)
     if restart:
         sim.restart(restart)
     try:

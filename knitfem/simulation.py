@@ -37,11 +37,11 @@ class Simulation:
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
-                 view="oblique"):
+                 view="oblique", animation=""):
         self.system, self.integrator, self.out, self.scene = system, integrator, out, scene
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
-        self.verbose, self.view = verbose, view
+        self.verbose, self.view, self.animation = verbose, view, animation
         self.comm = system.comm
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
@@ -58,7 +58,7 @@ class Simulation:
         self.rf = self.full.C.createVecLeft()
         self.Mv = system.M.createVecLeft()
         self.initial_lowest = None
-        self.frames = []
+        self.frames, self.movie = [], []
 
     # -- measures ------------------------------------------------------------
     def centroid(self, eps):
@@ -110,22 +110,29 @@ class Simulation:
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
                                               self.full.fabric.radius)
         self.series.write(self.t, P)
+        if self.animation:
+            self.movie.append((self.t, P))
         for ts in due:
             self.frames.append((f"t = {ts:g} s", P))
             io.draw(self._path(f"{self.scene}_t{ts:g}s.png"), P,
                     self.full.fabric.radius, view=self.view,
-                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s",
-                    extent=self.extent)
+                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s")
 
     def write_panels(self):
-        """The snapshots of this run side by side in one PNG (rank 0)."""
-        if self.out is None or self.comm.rank or not self.frames:
+        """The snapshots of this run side by side in one PNG, in one scale
+        that fits them all, and the animation of the output frames (rank 0)."""
+        if self.out is None or self.comm.rank:
             return
-        titles, frames = zip(*self.frames)
-        io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
-                       self.full.fabric.radius, titles, view=self.view,
-                       extent=self.extent)
-        self.frames = []
+        if self.frames:
+            titles, frames = zip(*self.frames)
+            io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
+                           self.full.fabric.radius, titles, view=self.view)
+        if len(self.movie) > 1:
+            times, frames = zip(*self.movie)
+            io.animate(self._path(self.animation), times, frames,
+                       self.full.fabric.radius, view=self.view,
+                       title=f"{self.scene}, {self.system.kind} model")
+        self.frames, self.movie = [], []
 
     def checkpoint(self):
         """HDF5 checkpoint of everything needed to continue bit-exactly."""
@@ -196,14 +203,8 @@ class Simulation:
         start = time.perf_counter()
         self.clock = (start, self.t, t_end)
         P, pts = self.geometry()
-        if self.comm.rank == 0:
-            # room for the rest shape to swing or sag down by its own size
-            lo, hi = pts.reshape(-1, 3).min(0), pts.reshape(-1, 3).max(0)
-            span, size = hi - lo, (hi - lo).max()
-            self.extent = (lo - [0.15 * span[0], size, 0.2 * size],
-                           hi + [0.15 * span[0], 0.1 * size, 0.2 * size])
-            if self.initial_lowest is None:
-                self.initial_lowest = pts[..., 1].min()
+        if self.comm.rank == 0 and self.initial_lowest is None:
+            self.initial_lowest = pts[..., 1].min()
         if self.step_count == 0:
             self.write_output(P, pts)
         stage = PETSc.Log.Stage("Time stepping")

@@ -112,6 +112,9 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
     for name in ("hanging_t0.02s.png", "hanging_t0.04s.png", "hanging_snapshots.png",
                  "yarns.xdmf", "yarns.h5"):
         assert (tmp_path / name).stat().st_size > 0
+    from PIL import Image
+    with Image.open(tmp_path / "hanging.gif") as gif:    # t = 0, 0.02, 0.04 s
+        assert gif.n_frames == 3
 
 
 def test_usage_lists_commands_with_an_example_each():
