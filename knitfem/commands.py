@@ -193,11 +193,9 @@ def run(comm):
     load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
-    snaps = opts.getString("snapshots", "0,0.4,1,2,3", "times of the PNG snapshots "
-                           "[s]")
-    movie = opts.getString("animation", "auto", "GIF of the output frames in the "
-                           "output directory (auto: <scene>.gif up to 1e5 "
-                           "coordinates; none: no GIF)")
+    snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
+    movie = opts.getString("animation", "", "file name of a GIF of every output "
+                           "frame, in the output directory (e.g. hanging.gif)")
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
@@ -228,12 +226,9 @@ def run(comm):
         if method == "symplectic":
             explicit_step_fits(system, dt)
         integrator = INTEGRATORS[method](system, dt)
-    if movie == "auto":
-        movie = f"{scene}.gif" if system.full_state(system.rest_state()).getSize() \
-            <= 100000 else ""
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
-                     view=VIEWS[scene], animation="" if movie == "none" else movie)
+                     view=VIEWS[scene], animation=movie)
     if restart:
         sim.restart(restart)
     try:
