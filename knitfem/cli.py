@@ -41,6 +41,7 @@ def main(argv=None):
 
     from .options import OURS, KnitError, KnitOptions, unused_options
 
+    given = set(PETSc.Options().getAll())       # not the defaults we set later
     if command is None:
         PETSc.Sys.Print(USAGE)
         return 0
@@ -61,7 +62,7 @@ def main(argv=None):
         complain(f"knitfem {command}: error: {err}")
         return 2
     if not wants_help:
-        left = [k for k in unused_options() if not k.startswith(OURS)]
+        left = [k for k in unused_options() if k in given and not k.startswith(OURS)]
         if left:
             complain(f"knitfem {command}: warning: PETSc option(s) not used "
                      f"(misspelt?): {' '.join('-' + k for k in left)}")
