@@ -87,6 +87,7 @@ class StaticSolver:
         self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
         self.lumped = system.M.getRowSum()
         self.load, self.sigma, self.sigma0 = 1.0, 0.0, 0.0
+        self.f0 = self.fmin = 0.0
 
     def _converged(self, system):
         """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
