@@ -41,7 +41,8 @@ $(VENV)/.installed: setup.py knitfem/_compiled.pyx
 	touch $@
 
 demo: setup
-	$(VENV)/bin/knitfem run -knit_scene hanging -knit_rows 7 -knit_cols 7 -o $(OUT)
+	$(VENV)/bin/knitfem run -knit_scene hanging -knit_rows 7 -knit_cols 7 \
+	  -knit_snapshots 0,0.4,1,2,3 -knit_animation hanging.gif -o $(OUT)
 
 test: setup test-serial test-parallel
 

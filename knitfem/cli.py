@@ -64,6 +64,7 @@ def _command(command, wants_help):
 
     from .options import OURS, KnitError, KnitOptions, unused_options
 
+    given = set(PETSc.Options().getAll())       # not the defaults we set later
     if command is None:
         PETSc.Sys.Print(USAGE)
         return 0

@@ -188,8 +188,8 @@ implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
 -log_view, -options_file FILE. Example:
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
-VIEWS = {"hanging": "side", "pulled": "front", "freefall": "oblique", "catenary": "front",
-         "cantilever": "front"}
+VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
+         "catenary": "front", "cantilever": "front"}
 
 
 def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod):
@@ -243,6 +243,8 @@ def run(comm):
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
+    movie = opts.getString("animation", "", "file name of a GIF of every output "
+                           "frame, in the output directory (e.g. hanging.gif)")
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
@@ -294,7 +296,7 @@ def run(comm):
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
-                         command=sys.argv, adapt=adapt)
+                         command=sys.argv, adapt=adapt, animation=movie)
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
-           "draw", "draw_panels", "VIEWS"]
+           "draw", "draw_panels", "animate", "VIEWS"]
 
 SAMPLES = 6
 
@@ -208,7 +208,29 @@ def _camera(azimuth, elevation):
 
 
 VIEWS = {"front": _camera(0, 0), "side": _camera(90, 0),
-         "oblique": _camera(-35, 20)}
+         "oblique": _camera(-35, 20), "three_quarter": _camera(-40, 25)}
+
+
+def _projected_box(P_or_extent, view, radius):
+    """(lo, hi) on screen of a fabric P or of a world box (lo, hi), padded."""
+    if isinstance(P_or_extent, tuple):
+        lo, hi = P_or_extent
+        pts = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
+    else:
+        pts = np.asarray(P_or_extent).reshape(-1, 3)
+    box = pts @ VIEWS[view].T
+    return box.min(0) - 2 * radius, box.max(0) + 2 * radius
+
+
+def _scale_bar(ax, lo, hi):
+    """A bar of a round length (1, 2 or 5 × 10^k m) near a fifth of the width."""
+    width = hi[0] - lo[0]
+    k = np.floor(np.log10(width / 5))
+    length = min((m * 10**k for m in (1, 2, 5)), key=lambda b: abs(b - width / 5))
+    x0, y0 = lo[0] + 0.05 * width, lo[1] + 0.05 * (hi[1] - lo[1])
+    ax.plot([x0, x0 + length], [y0, y0], color="k", lw=2)
+    ax.text(x0 + length / 2, y0, f"{length * 1e3:g} mm", ha="center", va="bottom",
+            fontsize=8)
 
 
 def _draw_on(ax, P, radius, view, extent):
@@ -222,14 +244,9 @@ def _draw_on(ax, P, radius, view, extent):
     yarn = np.repeat(np.arange(nyarn), m - 1)
     depth = seg[:, :, 2].mean(axis=1)
     order = np.argsort(depth)
-    if extent is None:
-        box = seg.reshape(-1, 3)
-    else:
-        corners = np.array(np.meshgrid(*zip(*extent), indexing="ij")).reshape(3, -1).T
-        box = corners @ cam.T
-    lo, hi, pad = box.min(0), box.max(0), 2 * radius
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    lo, hi = _projected_box(P if extent is None else tuple(extent), view, radius)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     scale = ax.transData.transform([(2 * radius, 0)])[0, 0] \
         - ax.transData.transform([(0, 0)])[0, 0]
@@ -246,8 +263,14 @@ def _draw_on(ax, P, radius, view, extent):
         ax.set_xlabel("z [m]")
         ax.set_ylabel("y [m]")
     else:
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_axis_off()
+        _scale_bar(ax, lo, hi)
+
+
+def _figsize(box, width, most=12.0):
+    """(width, height) in inches for a screen box (lo, hi)."""
+    (x0, y0), (x1, y1) = box[0][:2], box[1][:2]
+    return width, max(2.0, min(most, width * (y1 - y0) / (x1 - x0)))
 
 
 def _save(fig, path):
@@ -259,16 +282,13 @@ def _save(fig, path):
 
 
 def draw(path, P, radius, title="", view="front", extent=None):
-    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS)."""
-    lo, hi = (np.asarray(P).reshape(-1, 3).min(0), np.asarray(P).reshape(-1, 3).max(0)) \
-        if extent is None else extent
-    box = np.array([lo, hi]) @ VIEWS[view].T
-    width, height = np.abs(box[1, :2] - box[0, :2]) + 4 * radius
-    fig, ax = plt.subplots(figsize=(8.0, max(2.0, min(12.0, 8.0 * height / width))),
-                           dpi=110)
-    fig.tight_layout()
+    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS), its
+    limits fitted to P (or to the world box ``extent``)."""
+    box = _projected_box(P if extent is None else tuple(extent), view, radius)
+    fig, ax = plt.subplots(figsize=_figsize(box, 8.0), dpi=110)
     _draw_on(ax, P, radius, view, extent)
     ax.set_title(title)
+    fig.tight_layout()
     _save(fig, path)
 
 
@@ -276,12 +296,39 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
     """One PNG with the fabrics ``frames`` side by side, in one common view
     and scale (e.g. the snapshots of a run, as the paper's Figures 10–13)."""
     if extent is None:
-        flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
-        extent = (flat.min(0), flat.max(0))
-    fig, axes = plt.subplots(1, len(frames), figsize=(3.2 * len(frames), 3.6),
+        extent = _world_box(frames)
+    w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
+    fig, axes = plt.subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
     for ax, P, title in zip(axes[0], frames, titles):
         _draw_on(ax, P, radius, view, extent)
         ax.set_title(title)
     fig.tight_layout()
     _save(fig, path)
+
+
+def _world_box(frames):
+    """(lo, hi) around every fabric in ``frames``."""
+    flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
+    return flat.min(0), flat.max(0)
+
+
+def animate(path, times, frames, radius, title="", view="three_quarter", fps=10):
+    """A GIF (matplotlib.animation, Pillow) of the fabrics ``frames`` at
+    ``times``, in one view and scale."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    extent = _world_box(frames)
+    fig, ax = plt.subplots(figsize=_figsize(_projected_box(extent, view, radius),
+                                            5.0, most=8.0), dpi=80)
+
+    def show(k):
+        ax.clear()
+        _draw_on(ax, frames[k], radius, view, extent)
+        ax.set_title(f"{title}, t = {times[k]:.2f} s")
+        return []
+
+    anim = FuncAnimation(fig, show, frames=len(frames), blit=False)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)

@@ -53,7 +53,8 @@ class Simulation:
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
-                 view="oblique", problem=None, command=None, adapt=None):
+                 view="oblique", problem=None, command=None, adapt=None,
+                 animation=""):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -64,7 +65,7 @@ class Simulation:
         self.problem, self.command = dict(problem or {}), command or sys.argv
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
-        self.verbose, self.view = verbose, view
+        self.verbose, self.view, self.animation = verbose, view, animation
         self.adapt = adapt          # called after every step (knitfem.adapt)
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
@@ -82,20 +83,15 @@ class Simulation:
         self.r = system.C.createVecLeft()
         self.rf = self.full.C.createVecLeft()
         self.Mv = system.M.createVecLeft()
-        self.frames = []
-        self.initial_lowest = self.extent = None
+        self.frames, self.movie = [], []
+        self.initial_lowest = None
         self.rest_measures()
         self.problem = self.fingerprint()
 
     def rest_measures(self):
-        """Lowest point and picture extent of the initial (rest) state."""
-        P, pts = self.geometry()
+        """Lowest point of the initial (rest) state."""
+        _, pts = self.geometry()
         if self.comm.rank == 0:
-            # room for the rest shape to swing or sag down by its own size
-            lo, hi = pts.reshape(-1, 3).min(0), pts.reshape(-1, 3).max(0)
-            span, size = hi - lo, (hi - lo).max()
-            self.extent = (lo - [0.15 * span[0], size, 0.2 * size],
-                           hi + [0.15 * span[0], 0.1 * size, 0.2 * size])
             self.initial_lowest = float(pts[..., 1].min())
 
     def fingerprint(self):
@@ -169,22 +165,31 @@ class Simulation:
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
                                               self.full.fabric.radius, keep, note)
         self.series.write(self.step_count, self.t, P)
+        if self.animation:
+            self.movie.append((self.t, P))
         for ts in due:
             io.draw(self._path(f"{self.scene}_t{ts:g}s.png"), P,
                     self.full.fabric.radius, view=self.view,
-                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s",
-                    extent=self.extent)
+                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s")
 
     def write_panels(self):
-        """The snapshots of this run side by side in one PNG (rank 0)."""
-        if self.output is None or not self.comm.tompi4py().bcast(
-                bool(self.frames), root=0):
+        """The snapshots of this run side by side in one PNG, in one scale
+        that fits them all, and the animation of the output frames (rank 0)."""
+        if self.output is None:
             return
-        titles, frames = zip(*self.frames) if self.comm.rank == 0 else ((), ())
-        self.output.rank0(io.draw_panels, self._path(f"{self.scene}_snapshots.png"),
-                          frames, self.full.fabric.radius, titles, self.view,
-                          self.extent)
-        self.frames = []
+        self.output.rank0(self._write_panels)
+        self.frames, self.movie = [], []
+
+    def _write_panels(self):
+        if self.frames:
+            titles, frames = zip(*self.frames)
+            io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
+                           self.full.fabric.radius, titles, view=self.view)
+        if len(self.movie) > 1:
+            times, frames = zip(*self.movie)
+            io.animate(self._path(self.animation), times, frames,
+                       self.full.fabric.radius, view=self.view,
+                       title=f"{self.scene}, {self.system.kind} model")
 
     def checkpoint(self):
         """Write a checkpoint of everything needed to continue (collective);

@@ -15,7 +15,7 @@ at the round-off of the linear solves.
 import numpy as np
 from petsc4py import PETSc
 
-from .reasons import reason_name
+from .reasons import reason_name, solve_failure
 from .saddle import SaddlePoint, saddle_ksp
 
 __all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "INTEGRATORS"]
@@ -226,7 +226,11 @@ class BackwardEuler:
             scale = self.Mv.norm() + h * s.Qg.norm()
             floor = 1e-14 * s.total_mass * s.fabric.radius / h
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
-        self.snes.solve(None, self.z)
+        try:
+            self.snes.solve(None, self.z)
+        except PETSc.Error as err:
+            raise SimulationError(f"{solve_failure(self.snes, err)}, h = {h:.3g} s") \
+                from None
         reason = self.snes.getConvergedReason()
         stats["newton"] += self.snes.getIterationNumber()
         stats["ksp"] += self.snes.getLinearSolveIterations()

@@ -45,7 +45,7 @@ unreachable; the SNES keeps the Newton-update test below.
 from petsc4py import PETSc
 
 from .integrators import SimulationError, _default, step_convergence
-from .reasons import reason_name
+from .reasons import reason_name, solve_failure
 from .saddle import SaddlePoint, saddle_ksp
 
 __all__ = ["StaticSolver"]
@@ -87,6 +87,7 @@ class StaticSolver:
         self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
         self.lumped = system.M.getRowSum()
         self.load, self.sigma, self.sigma0 = 1.0, 0.0, 0.0
+        self.f0 = self.fmin = 0.0
 
     def _converged(self, system):
         """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
@@ -151,7 +152,11 @@ class StaticSolver:
         its = 0
         for i in range(1, self.steps + 1):
             self.load = i / self.steps
-            self.snes.solve(None, self.z)
+            try:
+                self.snes.solve(None, self.z)
+            except PETSc.Error as err:
+                raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
+                                      f"{solve_failure(self.snes, err)}") from None
             reason = self.snes.getConvergedReason()
             its += self.snes.getIterationNumber()
             if monitor:

@@ -157,3 +157,22 @@ def reduced_stiffness(model, x):
     C = np.vstack(COMM.tompi4py().allgather(to_scipy(model.C).toarray()))
     Z = null_space(C)
     return Z.T @ K @ Z
+
+
+def test_failed_linear_solve_is_named():
+    """A KSP that stops unconverged ends the solve with its reason by name."""
+    from solvers.integrators import SimulationError
+
+    opts = PETSc.Options()
+    given = dict(static_ksp_type="gmres", static_pc_type="none",
+                 static_ksp_max_it="2")
+    for k, v in given.items():
+        opts.setValue(k, v)
+    try:
+        model = FullModel(SELF, make_fabric("cantilever", length=L, nseg=10),
+                          Material(rho=1e-3, EA=1e4, EI=1.962e-4))
+        with pytest.raises(SimulationError, match=r"DIVERGED_MAX_IT after 2 "):
+            StaticSolver(model).solve(model.rest_state())
+    finally:
+        for k in given:
+            opts.delValue(k)
