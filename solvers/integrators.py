@@ -15,7 +15,7 @@ at the round-off of the linear solves.
 import numpy as np
 from petsc4py import PETSc
 
-from .saddle import SaddlePoint, saddle_ksp
+from .saddle import SaddlePoint, SolverFailure, saddle_ksp, solve_saddle
 
 __all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "StaticSolver",
            "INTEGRATORS"]
@@ -140,12 +140,13 @@ class BackwardEuler:
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle = SaddlePoint(self.A, system.C,
-                                  dense=getattr(system, "dense_saddle", False))
+                                  dense=getattr(system, "dense_saddle", False),
+                                  prefix=prefix)
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
         self.snes.setFunction(self._residual, self.F)
-        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
         # converged when the update moves ε by < 1e-9 yarn radii
         self.snes.setConvergenceTest(step_convergence(
@@ -201,7 +202,10 @@ class BackwardEuler:
         """Advance (ε, ε̇) by dt; a failed Newton solve is retried as two half
         steps, down to dt / 2^max_halvings, before the step fails."""
         stats = {"newton": 0, "ksp": 0}
-        self._advance(x, v, self.dt, 0, stats)
+        try:
+            self._advance(x, v, self.dt, 0, stats)
+        except SolverFailure as err:          # a smaller step would not help
+            raise SimulationError(str(err)) from None
         return stats
 
     def _advance(self, x, v, h, depth, stats):
@@ -226,7 +230,7 @@ class BackwardEuler:
             scale = self.Mv.norm() + h * s.Qg.norm()
             floor = 1e-14 * s.total_mass * s.fabric.radius / h
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
-        self.snes.solve(None, self.z)
+        solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
         reason = self.snes.getConvergedReason()
         stats["newton"] += self.snes.getIterationNumber()
         stats["ksp"] += self.snes.getLinearSolveIterations()
