@@ -188,6 +188,22 @@ def _factor(ksp):
     return pc, pc.getFactorMatrix() if solver == "mumps" else None
 
 
+def refactor(ksp, icntl14):
+    """Drop the failed MUMPS factor (it would skip its numeric phase after any
+    error) for a new one with ICNTL(14) = ``icntl14`` (also in the options
+    database, which the new factor reads) and the old CNTL(1)."""
+    pc, F = _factor(ksp)
+    cntl1 = F.getMumpsCntl(1)
+    PETSc.Options(ksp.getOptionsPrefix()).setValue("mat_mumps_icntl_14", icntl14)
+    A, P = ksp.getOperators()
+    pc.reset()
+    ksp.setOperators(A, P)
+    pc.setFactorSetUpSolverType()
+    F = pc.getFactorMatrix()
+    F.setMumpsIcntl(14, icntl14)
+    F.setMumpsCntl(1, cntl1)
+
+
 def failure_or_retry(ksp, err):
     """After a PETSc error ``err`` in a solve with ``ksp`` (collective).
 
@@ -204,7 +220,7 @@ def failure_or_retry(ksp, err):
             icntl14 = F.getMumpsIcntl(14)
             if icntl14 < MUMPS_WORKSPACE_MAX:
                 new = min(max(2 * icntl14, 100), MUMPS_WORKSPACE_MAX)
-                F.setMumpsIcntl(14, new)
+                refactor(ksp, new)
                 PETSc.Sys.Print(f"MUMPS workspace too small (INFOG(1) = {info}): "
                                 f"retrying with -{prefix}mat_mumps_icntl_14 {new}",
                                 comm=ksp.getComm())
