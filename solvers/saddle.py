@@ -11,18 +11,21 @@ held dense instead and factorised by LAPACK's pivoting LU. Each rank's
 rows are [its A rows, its C rows], so a saddle vector's local array is the
 concatenation of the two local parts.
 
-Regularised preconditioner. Serial MUMPS pairs every zero-diagonal
-constraint row with a coordinate before ordering (maximum weighted matching,
-ICNTL(6); constrained ordering, ICNTL(12)); with the matrix distributed over
-ranks it cannot, and its LDLᵀ delays some 17 000 pivots of the 20×40 jersey
-(1 200 serially), tripling the flops and overflowing its workspace. With
+Regularised Jacobian. Serial MUMPS pairs every zero-diagonal constraint
+row with a coordinate before ordering (maximum weighted matching, ICNTL(6);
+constrained ordering, ICNTL(12)); with the matrix distributed over ranks it
+cannot, and its LDLᵀ delays some 17 000 pivots of the 20×40 jersey (1 200
+serially), tripling the flops and overflowing its workspace. With
 ``-<prefix>saddle_regularization τ`` > 0 (the default on more than one rank)
-K is solved by GMRES preconditioned with the LDLᵀ of the quasi-definite
+the linear solves use the LDLᵀ of the quasi-definite
 
     P = [A Cᵀ; C −δI],   δ = τ / max diag A,
 
-which factorises stably in any order without pivoting (MUMPS CNTL(1) = 0);
-GMRES needs one or two iterations, so the solution is K's, not P's.
+which factorises stably in any order without pivoting (MUMPS CNTL(1) = 0).
+Newton keeps K in its residual, so P only makes it an inexact Newton whose
+iterations and converged state are those of K (measured: the same Newton
+counts and states over three steps of the 10×20 jersey); ``-<prefix>ksp_type gmres``
+solves K itself, in one or two iterations.
 """
 
 import numpy as np
@@ -125,8 +128,8 @@ def regularization_option(prefix, comm):
 
     opts = KnitOptions(prefix + "saddle_")
     return opts.getReal("regularization", 1.0 if comm.getSize() > 1 else 0.0,
-                        "precondition the saddle point by the LDLt of [A C^T; "
-                        "C -tau/max(diag A) I] under GMRES (0: direct LDLt of K)",
+                        "solve with the LDLt of [A C^T; C -tau/max(diag A) I] "
+                        "without pivoting (0: pivoting LDLt of K)",
                         nonnegative=True)
 
 
@@ -135,8 +138,9 @@ def saddle_ksp(saddle, prefix):
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
     with 100 % extra workspace for delayed pivots (ICNTL(14)); LAPACK LU for
-    a dense K. With a regularised P (``saddle.delta`` > 0): GMRES (at most 30
-    iterations) preconditioned by MUMPS LDLᵀ of P without pivoting.
+    a dense K. With a regularised P (``saddle.delta`` > 0): MUMPS LDLᵀ of P
+    without pivoting (a Krylov method chosen by options, at most 30
+    iterations, solves K with it).
 
     Fieldsplit preconditioners get the fields "u" (coordinates) and "l"
     (multipliers), e.g. ``-<prefix>pc_type fieldsplit
@@ -145,7 +149,7 @@ def saddle_ksp(saddle, prefix):
     ksp = PETSc.KSP().create(comm=saddle.K.getComm())
     ksp.setOptionsPrefix(prefix)
     ksp.setOperators(saddle.K, saddle.P)
-    ksp.setType("preonly" if saddle.delta == 0 else "gmres")
+    ksp.setType("preonly")
     if saddle.delta:
         ksp.setTolerances(max_it=30)
     pc = ksp.getPC()

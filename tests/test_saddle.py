@@ -77,7 +77,7 @@ def test_values_in_place_keep_one_analysis(model, options):
 def test_regularized_preconditioner_solves_K(model, options):
     """GMRES on K preconditioned by the pivot-free LDLᵀ of [A Cᵀ; C −δI]
     gives K's solution (not P's) in a few iterations."""
-    options(t_reg_saddle_regularization=1.0)
+    options(t_reg_saddle_regularization=1.0, t_reg_ksp_type="gmres")
     A = jacobian(model, scale=1.001)
     direct, reg = SaddlePoint(A, model.C), SaddlePoint(A, model.C, prefix="t_reg_")
     assert direct.P is direct.K and reg.P is not reg.K and reg.delta > 0
@@ -100,7 +100,8 @@ def test_regularized_preconditioner_solves_K(model, options):
 def test_failure_is_one_line(model, options):
     """A Krylov solve that cannot converge ends as SolverFailure: one line
     naming the solver, its reason and the option to change."""
-    options(t_fail_saddle_regularization=1.0, t_fail_ksp_max_it=2,
+    options(t_fail_saddle_regularization=1.0, t_fail_ksp_type="gmres",
+            t_fail_ksp_max_it=2,
             t_fail_ksp_rtol=1e-30, t_fail_pc_type="jacobi")
     saddle = SaddlePoint(jacobian(model), model.C, prefix="t_fail_")
     ksp = saddle_ksp(saddle, "t_fail_")
