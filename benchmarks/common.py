@@ -119,16 +119,21 @@ def log_snapshot():
 
 def log_since(before, comm):
     """Events that ran since ``before``, per stage: time (s, max over ranks),
-    count (max), flops (sum). Collective."""
+    count (max), flops (sum) and, on more than one rank, each rank's time
+    (``rank_times``). Collective."""
     after, mpi = log_snapshot(), comm.tompi4py()
     out = {}
     for stage, events in after.items():
         for name, (t, n, f) in events.items():
             t0, n0, f0 = before[stage][name]
-            t, n = mpi.allreduce(t - t0, op=MPI.MAX), mpi.allreduce(n - n0, op=MPI.MAX)
+            times = mpi.allgather(t - t0)
+            n = mpi.allreduce(n - n0, op=MPI.MAX)
             f = mpi.allreduce(f - f0)
             if n:
-                out.setdefault(stage, {})[name] = dict(time=t, count=n, flops=f)
+                rec = dict(time=max(times), count=n, flops=f)
+                if comm.size > 1:
+                    rec["rank_times"] = times
+                out.setdefault(stage, {})[name] = rec
     return out
 
 

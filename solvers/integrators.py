@@ -15,8 +15,9 @@ at the round-off of the linear solves.
 import numpy as np
 from petsc4py import PETSc
 
-from .reasons import reason_name, solve_failure
-from .saddle import SaddlePoint, saddle_ksp
+from .reasons import reason_name
+from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+                     solve_saddle)
 
 __all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "INTEGRATORS"]
 
@@ -140,12 +141,13 @@ class BackwardEuler:
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle = SaddlePoint(self.A, system.C,
-                                  dense=getattr(system, "dense_saddle", False))
+                                  dense=getattr(system, "dense_saddle", False),
+                                  prefix=prefix)
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
         self.snes.setFunction(self._residual, self.F)
-        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
         # converged when the update moves ε by < 1e-9 yarn radii
         self.snes.setConvergenceTest(step_convergence(
@@ -201,7 +203,10 @@ class BackwardEuler:
         """Advance (ε, ε̇) by dt; a failed Newton solve is retried as two half
         steps, down to dt / 2^max_halvings, before the step fails."""
         stats = {"newton": 0, "ksp": 0}
-        self._advance(x, v, self.dt, 0, stats)
+        try:
+            self._advance(x, v, self.dt, 0, stats)
+        except SolverFailure as err:          # a smaller step would not help
+            raise SimulationError(str(err)) from None
         return stats
 
     def _advance(self, x, v, h, depth, stats):
@@ -227,13 +232,14 @@ class BackwardEuler:
             floor = 1e-14 * s.total_mass * s.fabric.radius / h
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
         try:
-            self.snes.solve(None, self.z)
-        except PETSc.Error as err:
-            raise SimulationError(f"{solve_failure(self.snes, err)}, h = {h:.3g} s") \
-                from None
+            solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+        except SolverFailure as err:
+            raise SimulationError(f"{err}, h = {h:.3g} s") from None
         reason = self.snes.getConvergedReason()
         stats["newton"] += self.snes.getIterationNumber()
         stats["ksp"] += self.snes.getLinearSolveIterations()
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+            raise SimulationError(f"{ksp_failure(self.snes.getKSP())}, h = {h:.3g} s")
         if reason < 0:
             raise SimulationError(f"Newton did not converge ({reason_name(self.snes)}, "
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "

@@ -10,14 +10,3 @@ def reason_name(solver):
              if v == value and not k.startswith("_")]
     return names[-1] if names else str(value)
 
-
-def solve_failure(snes, err):
-    """One line for a SNES solve that raised: the KSP's reason by name when a
-    linear solve failed (KSPs here stop on -ksp_error_if_not_converged),
-    else the last line of PETSc's message."""
-    ksp = snes.getKSP()
-    if ksp.getConvergedReason() < 0:
-        return (f"linear solve failed ({reason_name(ksp)} after "
-                f"{ksp.getIterationNumber()} iterations)")
-    lines = [s.strip() for s in str(err).splitlines() if s.strip()]
-    return lines[-1] if lines else type(err).__name__

@@ -1,20 +1,38 @@
-"""Saddle-point systems [A Cᵀ; C 0] as one AIJ matrix, and their KSP.
+"""Saddle-point systems [A Cᵀ; C 0] as one AIJ matrix, their KSP, and what
+to do when the solver fails.
 
 The blocks are wrapped in a MATNEST and converted to AIJ once (MUMPS cannot
 factor a nest); the constraint block carries an explicit zero diagonal so
 that factorisations and fieldsplit find its entries. When A's values change
 (same pattern) ``update`` writes them into their places in K, so K keeps
-its nonzero state and factorisations keep their symbolic phase. Small serial
-systems (the reduced model's) can be held dense instead and factorised by
-LAPACK's pivoting LU. Each rank's
+its nonzero state and factorisations keep their symbolic phase (MUMPS's
+analysis runs once a run). Small serial systems (the reduced model's) can be
+held dense instead and factorised by LAPACK's pivoting LU. Each rank's
 rows are [its A rows, its C rows], so a saddle vector's local array is the
 concatenation of the two local parts.
+
+Regularised Jacobian. Serial MUMPS pairs every zero-diagonal constraint
+row with a coordinate before ordering (maximum weighted matching, ICNTL(6);
+constrained ordering, ICNTL(12)); with the matrix distributed over ranks it
+cannot, and its LDLᵀ delays some 17 000 pivots of the 20×40 jersey (1 200
+serially), tripling the flops and overflowing its workspace. With
+``-<prefix>saddle_regularization τ`` > 0 (the default on more than one rank)
+the linear solves use the LDLᵀ of the quasi-definite
+
+    P = [A Cᵀ; C −δI],   δ = τ / max diag A,
+
+which factorises stably in any order without pivoting (MUMPS CNTL(1) = 0).
+Newton keeps K in its residual, so P only makes it an inexact Newton whose
+iterations and converged state are those of K (measured: the same Newton
+counts and states over three steps of the 10×20 jersey); ``-<prefix>ksp_type gmres``
+solves K itself, in one or two iterations.
 """
 
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["SaddlePoint", "saddle_ksp"]
+__all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
+           "ksp_failure", "failure_or_retry"]
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -32,16 +50,20 @@ class SaddlePoint:
     """K = [A Cᵀ; C 0] for A (n×n) and C (k×n); K = A when C has no rows.
 
     Collective. ``nu`` and ``nl`` are the local sizes of the two parts;
-    ``dense`` holds K as a dense matrix (one rank only).
+    ``dense`` holds K as a dense matrix (one rank only). With a ``prefix``,
+    ``-<prefix>saddle_regularization τ`` builds the preconditioning matrix
+    P = [A Cᵀ; C −δI] (module docstring); otherwise P is K.
     """
 
-    def __init__(self, A, C, dense=False):
+    def __init__(self, A, C, dense=False, prefix=None):
         self.A, self.C, self.aij = A, C, None
+        self.P, self.delta = None, 0.0
         self.nu = A.getLocalSize()[0]
         self.nl = C.getLocalSize()[0] if C is not None else 0
         self.constrained = C is not None and C.getSize()[0] > 0
         if not self.constrained:
             self.nl, self.nest, self.K = 0, None, A
+            self.P = A
             return
         comm = A.getComm()
         self.Ct = C.transpose(PETSc.Mat())
@@ -60,6 +82,18 @@ class SaddlePoint:
         indptr = np.append(indptr, np.full(self.nl, indptr[-1]))   # C rows: none
         self.csr = (indptr.astype(PETSc.IntType),
                     (cols - a[owner] + k[owner]).astype(PETSc.IntType))
+        tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
+        self.P = self.K if tau == 0 else self.regularized(tau)
+
+    def regularized(self, tau):
+        """P = K − δ [0 0; 0 I] with δ = τ / max diag A (same pattern as K)."""
+        self.delta = tau / self.A.getDiagonal().norm(PETSc.NormType.INFINITY)
+        P = self.K.duplicate(copy=True)
+        shift = P.createVecLeft()
+        self.split(shift)[1][:] = -self.delta
+        P.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
+        shift.destroy()
+        return P
 
     def update(self):
         """Refresh K after A's values changed (same nonzero pattern)."""
@@ -67,8 +101,10 @@ class SaddlePoint:
             self.nest.convert("aij", self.aij)
             self.aij.convert("dense", self.K)
         elif self.constrained:
-            self.K.setValuesCSR(*self.csr, self.A.getValuesCSR()[2])
-            self.K.assemble()
+            values = self.A.getValuesCSR()[2]
+            for K in (self.K, self.P) if self.P is not self.K else (self.K,):
+                K.setValuesCSR(*self.csr, values)
+                K.assemble()
 
     def createVec(self):
         return self.K.createVecRight()
@@ -80,9 +116,21 @@ class SaddlePoint:
 
     def destroy(self):
         if self.constrained:
-            for obj in (self.Ct, self.Z, self.nest, self.K, self.aij):
+            P = self.P if self.P is not self.K else None
+            for obj in (self.Ct, self.Z, self.nest, self.K, self.aij, P):
                 if obj is not None:
                     obj.destroy()
+
+
+def regularization_option(prefix, comm):
+    """τ of -<prefix>saddle_regularization: 1 on more than one rank, else 0."""
+    from knitfem.options import KnitOptions
+
+    opts = KnitOptions(prefix + "saddle_")
+    return opts.getReal("regularization", 1.0 if comm.getSize() > 1 else 0.0,
+                        "solve with the LDLt of [A C^T; C -tau/max(diag A) I] "
+                        "without pivoting (0: pivoting LDLt of K)",
+                        nonnegative=True)
 
 
 def saddle_ksp(saddle, prefix):
@@ -90,7 +138,9 @@ def saddle_ksp(saddle, prefix):
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
     with 100 % extra workspace for delayed pivots (ICNTL(14)); LAPACK LU for
-    a dense K.
+    a dense K. With a regularised P (``saddle.delta`` > 0): MUMPS LDLᵀ of P
+    without pivoting (a Krylov method chosen by options, at most 30
+    iterations, solves K with it).
 
     Fieldsplit preconditioners get the fields "u" (coordinates) and "l"
     (multipliers), e.g. ``-<prefix>pc_type fieldsplit
@@ -98,8 +148,10 @@ def saddle_ksp(saddle, prefix):
     """
     ksp = PETSc.KSP().create(comm=saddle.K.getComm())
     ksp.setOptionsPrefix(prefix)
-    ksp.setOperators(saddle.K)
+    ksp.setOperators(saddle.K, saddle.P)
     ksp.setType("preonly")
+    if saddle.delta:
+        ksp.setTolerances(max_it=30)
     pc = ksp.getPC()
     solver = "petsc" if saddle.K.getType() == "seqdense" else "mumps"
     pc.setType("lu" if solver == "petsc" else "cholesky")
@@ -112,6 +164,111 @@ def saddle_ksp(saddle, prefix):
     if pc.getType() in ("lu", "cholesky") and \
             not options.hasName("pc_factor_mat_solver_type"):
         pc.setFactorSolverType(solver)         # kept under -<prefix>pc_type lu
+    if saddle.delta and pc.getType() in ("lu", "cholesky") and \
+            pc.getFactorSolverType() == "mumps" and \
+            not options.hasName("mat_mumps_cntl_1"):
+        pc.setFactorSetUpSolverType()
+        pc.getFactorMatrix().setMumpsCntl(1, 0.0)   # P is quasi-definite
     if pc.getType() == "fieldsplit" and saddle.constrained:
         pc.setFieldSplitIS(("u", saddle.fields[0]), ("l", saddle.fields[1]))
     return ksp
+
+
+# -- when the solver fails -------------------------------------------------
+class SolverFailure(RuntimeError):
+    """A linear solver failed for good; the message is one line naming the
+    solver, its code and the option to change."""
+
+
+MUMPS_WORKSPACE_MAX = 6400     # ICNTL(14), percent: 64× the analysis estimate
+
+
+def _factor(ksp):
+    """(PC, MUMPS factor matrix or None) of a KSP with a factorisation PC."""
+    pc = ksp.getPC()
+    if pc.getType() not in ("lu", "cholesky"):
+        return pc, None
+    solver = pc.getFactorSolverType()
+    return pc, pc.getFactorMatrix() if solver == "mumps" else None
+
+
+def refactor(ksp, icntl14):
+    """Drop the failed MUMPS factor (it would skip its numeric phase after any
+    error) for a new one with ICNTL(14) = ``icntl14`` (also in the options
+    database, which the new factor reads) and the old CNTL(1)."""
+    pc, F = _factor(ksp)
+    cntl1 = F.getMumpsCntl(1)
+    PETSc.Options(ksp.getOptionsPrefix()).setValue("mat_mumps_icntl_14", icntl14)
+    A, P = ksp.getOperators()
+    pc.reset()
+    ksp.setOperators(A, P)
+    pc.setFactorSetUpSolverType()
+    F = pc.getFactorMatrix()
+    F.setMumpsIcntl(14, icntl14)
+    F.setMumpsCntl(1, cntl1)
+
+
+def ksp_failure(ksp):
+    """One line for a KSP whose last solve did not converge: the solver, its
+    reason by name and the options to change."""
+    prefix = ksp.getOptionsPrefix() or ""
+    name = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items()
+            if isinstance(v, int)}.get(ksp.getConvergedReason())
+    return (f"KSP {ksp.getType()} with PC {ksp.getPC().getType()} did not converge "
+            f"({name}, {ksp.getIterationNumber()} iterations): raise "
+            f"-{prefix}ksp_max_it or change -{prefix}pc_type")
+
+
+def failure_or_retry(ksp, err):
+    """After a PETSc error ``err`` in a solve with ``ksp`` (collective).
+
+    MUMPS out of workspace (INFOG(1) = −8 or −9): ICNTL(14) is doubled (up to
+    6400 %) and None is returned, the caller then repeats the solve. Anything
+    else: a one-line description naming the solver, its code and the option
+    to change.
+    """
+    prefix = ksp.getOptionsPrefix() or ""
+    pc, F = _factor(ksp)
+    if F is not None:
+        info, more = F.getMumpsInfog(1), F.getMumpsInfo(2)
+        if info in (-8, -9):
+            icntl14 = F.getMumpsIcntl(14)
+            if icntl14 < MUMPS_WORKSPACE_MAX:
+                new = min(max(2 * icntl14, 100), MUMPS_WORKSPACE_MAX)
+                refactor(ksp, new)
+                PETSc.Sys.Print(f"MUMPS workspace too small (INFOG(1) = {info}): "
+                                f"retrying with -{prefix}mat_mumps_icntl_14 {new}",
+                                comm=ksp.getComm())
+                return None
+            return (f"MUMPS factorisation out of workspace (INFOG(1) = {info}) even "
+                    f"with -{prefix}mat_mumps_icntl_14 {icntl14}: use more ranks "
+                    f"or another solver (-{prefix}pc_factor_mat_solver_type)")
+        if info == -10:
+            return (f"MUMPS: K is numerically singular (INFOG(1) = -10): "
+                    f"redundant constraints? -{prefix}mat_mumps_icntl_24 1 "
+                    f"detects null pivots")
+        if info == -13:
+            return (f"MUMPS could not allocate memory (INFOG(1) = -13, INFO(2) = "
+                    f"{more}): use more ranks or -{prefix}mat_mumps_icntl_35 2 "
+                    f"(BLR compression)")
+        if info < 0:
+            return (f"MUMPS failed with INFOG(1) = {info}, INFO(2) = {more} (MUMPS "
+                    f"users' guide, error diagnostics): try "
+                    f"-{prefix}pc_factor_mat_solver_type superlu_dist")
+    if ksp.getConvergedReason() < 0:
+        return ksp_failure(ksp)
+    last = [s.strip() for s in str(err).splitlines() if s.strip()]
+    return (f"PETSc error in the {prefix} solve ({last[-1] if last else err}): "
+            f"change -{prefix}ksp_type / -{prefix}pc_type")
+
+
+def solve_saddle(solve, ksp):
+    """``solve()``, repeated with more MUMPS workspace while it runs out of
+    it; any other failure raises ``SolverFailure`` (collective)."""
+    while True:
+        try:
+            return solve()
+        except PETSc.Error as err:
+            line = failure_or_retry(ksp, err)
+            if line is not None:
+                raise SolverFailure(line) from None

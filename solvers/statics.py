@@ -45,8 +45,9 @@ unreachable; the SNES keeps the Newton-update test below.
 from petsc4py import PETSc
 
 from .integrators import SimulationError, _default, step_convergence
-from .reasons import reason_name, solve_failure
-from .saddle import SaddlePoint, saddle_ksp
+from .reasons import reason_name
+from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+                     solve_saddle)
 
 __all__ = ["StaticSolver"]
 
@@ -153,14 +154,17 @@ class StaticSolver:
         for i in range(1, self.steps + 1):
             self.load = i / self.steps
             try:
-                self.snes.solve(None, self.z)
-            except PETSc.Error as err:
+                solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+            except SolverFailure as err:
                 raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
-                                      f"{solve_failure(self.snes, err)}") from None
+                                      f"{err}") from None
             reason = self.snes.getConvergedReason()
             its += self.snes.getIterationNumber()
             if monitor:
                 monitor(i, self.load, self.snes)
+            if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+                raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
+                                      f"{ksp_failure(self.snes.getKSP())}")
             if reason < 0:
                 raise SimulationError(
                     f"static Newton did not converge at load {self.load:.3g} "
