@@ -137,9 +137,52 @@ VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
          "cantilever": "front"}
 
 
+def integrator_from_options(opts):
+    """The integrator of -knit_integrator with its step control: fixed steps
+    under -knit_dt, else error-controlled (-knit_rtol, -knit_atol). Returns
+    a function of the system (the options are read now)."""
+    from solvers.integrators import INTEGRATORS, GeneralizedAlpha
+    from solvers.stepping import StepControl
+
+    method = opts.getChoice("integrator", "alpha", tuple(INTEGRATORS),
+                            "integrator: generalized-alpha (2nd order), backward "
+                            "Euler, symplectic Euler (explicit)")
+    dt = opts.getReal("dt", 0.0, "fixed time step [s] (0: error-controlled steps)",
+                      nonnegative=True)
+    rtol = opts.getReal("rtol", 1e-3, "relative tolerance of the local error",
+                        nonnegative=True)
+    atol = opts.getReal("atol", 1e-6, "absolute tolerance of the local error [m]",
+                        nonnegative=True)
+    dt0 = opts.getReal("dt_initial", 1e-3, "first trial step [s] (error-controlled)",
+                       positive=True)
+    dt_min = opts.getReal("dt_min", 1e-9, "smallest step [s] before the run stops",
+                          positive=True)
+    dt_max = opts.getReal("dt_max", 0.1, "largest step [s]", positive=True)
+    rho_inf = opts.getReal("rho_inf", 0.8, "generalized-alpha spectral radius at "
+                           "infinite frequency (1: no numerical dissipation)",
+                           nonnegative=True)
+    if rho_inf > 1:
+        raise KnitError(f"-knit_rho_inf {rho_inf:g}: expected a value in [0, 1]")
+    if method == "symplectic" and dt == 0:
+        raise KnitError("-knit_integrator symplectic: an explicit step needs a "
+                        "fixed -knit_dt (say 5e-7)")
+    if dt == 0 and rtol == 0 and atol == 0:
+        raise KnitError("-knit_rtol 0 -knit_atol 0: give a positive tolerance or "
+                        "a fixed -knit_dt")
+
+    def make(system):
+        control = StepControl(dt or dt0, adaptive=dt == 0, rtol=rtol, atol=atol,
+                              dt_min=dt_min, dt_max=dt_max)
+        if method == "alpha":
+            return GeneralizedAlpha(system, control.dt, control, rho_inf=rho_inf)
+        return INTEGRATORS[method](system, control.dt, control)
+
+    return make
+
+
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
-    from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
+    from solvers.integrators import SimulationError, StaticSolver
 
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
@@ -157,8 +200,7 @@ def run(comm):
                         "held course (hanging: 90 horizontal, 0 hanging)")
     material = material_from_options(opts)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
-    dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
-    method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    make_integrator = integrator_from_options(opts)
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
                           "(Newton with load stepping, -static_snes_* options)")
     load_steps = opts.getInt("load_steps", 5, "load steps of the static solve", 1)
@@ -188,7 +230,7 @@ def run(comm):
     if static:
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
     with PETSc.Log.Stage("Solver set-up"):
-        integrator = INTEGRATORS[method](system, dt)
+        integrator = make_integrator(system)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
                      view=VIEWS[scene])

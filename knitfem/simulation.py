@@ -1,9 +1,11 @@
 """Time stepping driver: output, checkpoints, failure detection, summary.
 
-    for n = 1 … N:  (ε, ε̇) ← integrator.step(t, ε, ε̇)
+    while t < t_end:  (ε, ε̇), h ← integrator.step(t, ε, ε̇, t_stop);  t ← t + h
 
-Every ``output_every`` steps the driver prints a progress line (step, t,
-Newton/KSP iterations, energies, constraint violation), appends the yarn
+The integrator chooses the step h (fixed, or by its error control) and lands
+exactly on t_stop, the next snapshot time or t_end. Every ``output_every``
+steps the driver prints a progress line (step, t, dt, Newton/KSP iterations,
+rejected steps, energies, constraint violation), appends the yarn
 centrelines to an XDMF/HDF5 time series and, at the requested snapshot
 times, draws a PNG. A non-finite state, a failed Newton solve or a constraint
 drift above ``drift_tol`` stops the run with one line naming the step, the
@@ -45,7 +47,10 @@ class Simulation:
         self.comm = system.comm
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
-        self.t, self.step_count, self.stats = 0.0, 0, {"newton": 0, "ksp": 0}
+        self.t, self.step_count = 0.0, 0
+        self.stats = {"newton": 0, "ksp": 0, "rejected": 0}
+        self.steps_taken = []            # (dt) of this process's accepted steps
+        self.energy = []                 # (t, kinetic, elastic + gravity)
         self.series = None
         self.full = getattr(system, "full", system)
         self.weights = self.full.m.createVecLeft()
@@ -85,6 +90,7 @@ class Simulation:
                                    op=__import__("mpi4py").MPI.MAX)
         return dict(kinetic_energy=kinetic, elastic_energy=elastic,
                     gravity_energy=potential,
+                    total_energy=kinetic + elastic + potential,
                     max_constraint_violation=self.r.norm(PETSc.NormType.INFINITY),
                     max_contact_residual=self.rf.norm(PETSc.NormType.INFINITY),
                     max_strain=max_strain, centroid=self.centroid(eps).tolist())
@@ -131,12 +137,19 @@ class Simulation:
         """HDF5 checkpoint of everything needed to continue bit-exactly."""
         import h5py
 
-        xs = self.comm.tompi4py().gather(self.x.getArray(readonly=True), root=0)
-        vs = self.comm.tompi4py().gather(self.v.getArray(readonly=True), root=0)
+        mpi = self.comm.tompi4py()
+        xs = mpi.gather(self.x.getArray(readonly=True), root=0)
+        vs = mpi.gather(self.v.getArray(readonly=True), root=0)
+        state = {k: mpi.gather(np.atleast_1d(a), root=0) if np.ndim(a) else a
+                 for k, a in self.integrator.state().items()}
         if self.comm.rank == 0:
             tmp = self._path("checkpoint.h5.tmp")
             with h5py.File(tmp, "w") as f:
                 f["x"], f["v"] = np.concatenate(xs), np.concatenate(vs)
+                for k, a in state.items():
+                    f[f"integrator/{k}"] = np.concatenate(a) if isinstance(a, list) \
+                        else a
+                f["stats"] = [self.stats[k] for k in ("newton", "ksp", "rejected")]
                 f.attrs.update(t=self.t, step=self.step_count, kind=self.system.kind,
                                scene=self.scene, dt=self.integrator.dt,
                                options=json.dumps(PETSc.Options().getAll()))
@@ -152,6 +165,8 @@ class Simulation:
             with h5py.File(path, "r") as f:
                 x, v = f["x"][...], f["v"][...]
                 t, step, kind = f.attrs["t"], int(f.attrs["step"]), f.attrs["kind"]
+                saved = {k: a[...] for k, a in f.get("integrator", {}).items()}
+                stats = f["stats"][...] if "stats" in f else None
         except (OSError, KeyError) as err:
             raise KnitError(f"-knit_restart {path}: not a knitfem checkpoint "
                             f"({err})") from None
@@ -162,14 +177,31 @@ class Simulation:
         lo, hi = self.x.getOwnershipRange()
         self.x.getArray()[:], self.v.getArray()[:] = x[lo:hi], v[lo:hi]
         self.t, self.step_count = float(t), step
+        if saved:
+            self.integrator.set_state(self.local_parts(saved))
+        if stats is not None:
+            self.stats.update(zip(("newton", "ksp", "rejected"), map(int, stats)))
         self.snapshots = [s for s in self.snapshots if s > self.t + 1e-9]
+
+    def local_parts(self, saved):
+        """This rank's slices of gathered integrator state arrays (the local
+        sizes are those of the integrator's own ``state()``)."""
+        mpi, out = self.comm.tompi4py(), {}
+        for k, a in self.integrator.state().items():
+            if np.ndim(a):
+                lo = mpi.exscan(len(a)) or 0
+                out[k] = saved[k][lo:lo + len(a)]
+            else:
+                out[k] = saved[k][()]
+        return out
 
     def progress(self, m):
         if self.verbose:
+            dt = self.steps_taken[-1] if self.steps_taken else self.integrator.dt
             PETSc.Sys.Print(
-                f"step {self.step_count:6d}  t {self.t:8.4f}  newton "
-                f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  "
-                f"kinetic {m['kinetic_energy']:.4e}  elastic "
+                f"step {self.step_count:6d}  t {self.t:8.4f}  dt {dt:.2e}  newton "
+                f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  rejected "
+                f"{self.stats['rejected']:3d}  kinetic {m['kinetic_energy']:.4e}  elastic "
                 f"{m['elastic_energy']:.4e}  |C x - d| "
                 f"{m['max_constraint_violation']:.2e}", comm=self.comm)
 
@@ -186,9 +218,8 @@ class Simulation:
 
     def run(self, t_end):
         """Integrate to t_end. Returns the summary dict; raises SimulationError."""
-        dt = self.integrator.dt
-        nsteps = int(round((t_end - self.t) / dt))
         start = time.perf_counter()
+        tiny = 1e-12 * max(1.0, abs(t_end))
         P, pts = self.geometry()
         if self.comm.rank == 0:
             # room for the rest shape to swing or sag down by its own size
@@ -198,25 +229,33 @@ class Simulation:
                            hi + [0.15 * span[0], 0.1 * size, 0.2 * size])
             if self.initial_lowest is None:
                 self.initial_lowest = pts[..., 1].min()
+        if not self.energy:
+            self.record_energy(self.measures())
         if self.step_count == 0:
             self.write_output(P, pts)
         stage = PETSc.Log.Stage("Time stepping")
         try:
-            for _ in range(nsteps):
+            while self.t < t_end - tiny:
+                stop = t_end
+                if self.snapshots and self.t < self.snapshots[0] - tiny:
+                    stop = min(stop, self.snapshots[0])
                 stage.push()
                 try:
-                    st = self.integrator.step(self.t, self.x, self.v)
+                    st = self.integrator.step(self.t, self.x, self.v, stop)
                 finally:
                     stage.pop()
                 self.step_count += 1
-                self.t = self.step_count * dt
-                for k in st:
+                landed = abs(self.t + st["dt"] - stop) <= tiny
+                self.t = stop if landed else self.t + st["dt"]
+                self.steps_taken.append(st["dt"])
+                for k in self.stats:
                     self.stats[k] += st[k]
-                last = self.step_count == int(round(t_end / dt))
+                last = self.t >= t_end - tiny
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
                     m = self.measures()
                     self.check(m)
+                    self.record_energy(m)
                     self.progress(m)
                     self.write_output(*self.geometry())
                 if self.checkpoint_every and self.out and \
@@ -225,22 +264,48 @@ class Simulation:
         except SimulationError as err:
             self.close()
             raise SimulationError(f"step {self.step_count + 1}, t = "
-                                  f"{self.t + dt:.6g} s: {err}") from None
+                                  f"{self.t:.6g} s: {err}") from None
         self.wall_time = time.perf_counter() - start
         summary = self.summary()
         self.close()
         return summary
 
+    def record_energy(self, m):
+        """Keep (t, kinetic, elastic + gravity energy) of a progress point."""
+        self.energy.append((self.t, m["kinetic_energy"],
+                            m["elastic_energy"] + m["gravity_energy"]))
+
+    def energy_record(self):
+        """Total energy E = T + E_el + E_g over the run and its drift
+        E(t_end) − E(0), absolute (J) and over the largest kinetic energy."""
+        t, kin, pot = np.array(self.energy).T
+        total = kin + pot
+        drift = float(total[-1] - total[0])
+        return dict(energy_drift=drift,
+                    energy_drift_relative=drift / max(kin.max(), 1e-300),
+                    energy_history=dict(t=t.tolist(), kinetic=kin.tolist(),
+                                        total=total.tolist()))
+
     def summary(self):
         m = self.measures()
         P, pts = self.geometry()
         s = self.system
+        taken = np.array(self.steps_taken or [self.integrator.dt])
+        control = getattr(self.integrator, "control", None)
         rec = dict(scene=self.scene, model=s.kind,
                    integrator=self.integrator.name, steps=self.step_count,
-                   dt=self.integrator.dt, t_end=self.t, wall_time_s=self.wall_time,
+                   dt=self.integrator.dt, dt_min=float(taken.min()),
+                   dt_max=float(taken.max()),
+                   adaptive=bool(control is not None and control.adaptive),
+                   rejected_steps=self.stats["rejected"],
+                   t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
                    ksp_iterations=self.stats["ksp"], **m)
+        if rec["adaptive"]:
+            rec.update(rtol=control.rtol, atol=control.atol)
+        if self.energy:
+            rec.update(self.energy_record())
         if self.comm.rank == 0:
             flat = pts.reshape(-1, 3)
             low = flat[np.argmin(flat[:, 1])]
