@@ -128,18 +128,29 @@ def pattern(comm):
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
 
 
-def material_from_options(opts):
-    """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping."""
+AIR_DRAG = {"hanging": 1.4}
+"""Default c_d [1/s] by scene: air drag on a swinging knit, linearised,
+c_d = ½ ρ_air C_D U / ρ_A = ½ · 1.2 kg/m³ · 1.2 · 0.5 m/s / 0.26 kg/m² (flat
+plate normal to the flow, C_D ≈ 1.2, Hoerner, *Fluid-Dynamic Drag*, 1965;
+U the swatch's swinging speed; ρ_A the 7×7 jersey's areal density). The
+scenes with analytic references (free fall, catenary, cantilever) are in
+vacuum."""
+
+
+def material_from_options(opts, scene=None):
+    """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping
+    (default: the scene's air drag)."""
     from .model import Material
 
-    d = Material()
+    d = Material(damping=AIR_DRAG.get(scene, 0.0))
     return Material(
         rho=opts.getReal("rho", d.rho, "linear density [kg/m]", positive=True),
         EA=opts.getReal("EA", d.EA, "axial stiffness EA [N]", positive=True),
         EI=opts.getReal("EI", d.EI, "bending stiffness EI [N m^2]", nonnegative=True),
         gravity=opts.getReal("gravity", d.gravity, "gravity g along -y [m/s^2]"),
-        damping=opts.getReal("damping", d.damping,
-                             "mass-proportional damping c_d [1/s]", nonnegative=True))
+        damping=opts.getReal("damping", d.damping, "mass-proportional damping c_d "
+                             "[1/s] (air drag; hanging: 1.4, else 0)",
+                             nonnegative=True))
 
 
 def model_options(opts):
@@ -205,11 +216,54 @@ def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod):
                 damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
 
 
+def integrator_from_options(opts):
+    """The integrator of -knit_integrator with its step control: fixed steps
+    under -knit_dt, else error-controlled (-knit_rtol, -knit_atol). Returns
+    a function of the system (the options are read now)."""
+    from solvers.integrators import INTEGRATORS, GeneralizedAlpha
+    from solvers.stepping import StepControl
+
+    method = opts.getChoice("integrator", "bdf2", tuple(INTEGRATORS),
+                            "integrator: BDF2, generalized-alpha (both 2nd order), "
+                            "backward Euler, symplectic Euler (explicit)")
+    dt = opts.getReal("dt", 0.0, "fixed time step [s] (0: error-controlled steps)",
+                      nonnegative=True)
+    rtol = opts.getReal("rtol", 2e-4, "relative tolerance of the local error",
+                        nonnegative=True)
+    atol = opts.getReal("atol", 2e-6, "absolute tolerance of the local error [m]",
+                        nonnegative=True)
+    dt0 = opts.getReal("dt_initial", 1e-3, "first trial step [s] (error-controlled)",
+                       positive=True)
+    dt_min = opts.getReal("dt_min", 1e-9, "smallest step [s] before the run stops",
+                          positive=True)
+    dt_max = opts.getReal("dt_max", 0.1, "largest step [s]", positive=True)
+    rho_inf = opts.getReal("rho_inf", 0.5, "generalized-alpha spectral radius at "
+                           "infinite frequency (1: no numerical dissipation)",
+                           nonnegative=True)
+    if rho_inf > 1:
+        raise KnitError(f"-knit_rho_inf {rho_inf:g}: expected a value in [0, 1]")
+    if method == "symplectic" and dt == 0:
+        raise KnitError("-knit_integrator symplectic: an explicit step needs a "
+                        "fixed -knit_dt (say 5e-7)")
+    if dt == 0 and rtol == 0 and atol == 0:
+        raise KnitError("-knit_rtol 0 -knit_atol 0: give a positive tolerance or "
+                        "a fixed -knit_dt")
+
+    def make(system):
+        control = StepControl(dt or dt0, adaptive=dt == 0, rtol=rtol, atol=atol,
+                              dt_min=dt_min, dt_max=dt_max)
+        if method == "alpha":
+            return GeneralizedAlpha(system, control.dt, control, rho_inf=rho_inf)
+        return INTEGRATORS[method](system, control.dt, control)
+
+    return make
+
+
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
     import sys
 
-    from solvers.integrators import INTEGRATORS, SimulationError
+    from solvers.integrators import SimulationError
     from solvers.statics import StaticSolver
 
     from .adapt import adapt_options, adaptation_from_options
@@ -230,10 +284,9 @@ def run(comm):
     tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
                         "held course (hanging: 90 horizontal, 0 hanging)")
     pull = pull_from_options(opts, jersey)
-    material = material_from_options(opts)
+    material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
-    dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
-    method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    make_integrator = integrator_from_options(opts)
     unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
                             "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
@@ -285,9 +338,9 @@ def run(comm):
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):
-            if method == "symplectic" and not unstable:
-                explicit_step_fits(system, dt)
-            integrator = INTEGRATORS[method](system, dt)
+            integrator = make_integrator(system)
+            if integrator.name == "symplectic" and not unstable:
+                explicit_step_fits(system, integrator.dt)
             adapt = adaptation_from_options(opts, system)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
         problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,

@@ -1,9 +1,11 @@
 """Time stepping driver: output, checkpoints, failure detection, summary.
 
-    for n = 1 … N:  (ε, ε̇) ← integrator.step(t, ε, ε̇)
+    while t < t_end:  (ε, ε̇), h ← integrator.step(t, ε, ε̇, t_stop);  t ← t + h
 
-Every ``output_every`` steps the driver prints a progress line (step, t,
-Newton/KSP iterations, energies, constraint violation), appends the yarn
+The integrator chooses the step h (fixed, or by its error control) and lands
+exactly on t_stop, the next snapshot time or t_end. Every ``output_every``
+steps the driver prints a progress line (step, t, dt, Newton/KSP iterations,
+rejected steps, energies, constraint violation), appends the yarn
 centrelines to the time series and, at the requested snapshot times, draws a
 PNG; every ``checkpoint_every`` steps it writes a checkpoint. The files are
 the business of ``output.OutputDirectory``; the driver only calls it.
@@ -69,8 +71,10 @@ class Simulation:
         self.adapt = adapt          # called after every step (knitfem.adapt)
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
-        self.t, self.step_count, self.stats = 0.0, 0, {"newton": 0, "ksp": 0}
-        self.t0, self.step0 = 0.0, 0        # t = t0 + (step − step0) dt
+        self.t, self.step_count = 0.0, 0
+        self.stats = {"newton": 0, "ksp": 0, "rejected": 0}
+        self.steps_taken = []            # dt of every accepted step
+        self.energy = []                 # (t, kinetic, elastic + gravity)
         self.series, self.series_from = None, None
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
@@ -103,8 +107,11 @@ class Simulation:
         rest = self.system.gather_points(self.system.rest_state())
         digest = hashlib.sha256(np.ascontiguousarray(rest).tobytes()).hexdigest() \
             if rest is not None else None
+        c = getattr(self.integrator, "control", None)
+        dt = f"adaptive, rtol {c.rtol:g}, atol {c.atol:g}" \
+            if c is not None and c.adaptive else self.integrator.dt
         return dict(self.problem, model=self.system.kind,
-                    integrator=self.integrator.name, dt=self.integrator.dt,
+                    integrator=self.integrator.name, dt=dt,
                     unknowns=self.x.getSize(), version=output.version(),
                     geometry=self.comm.tompi4py().bcast(digest, root=0)[:16])
 
@@ -133,6 +140,7 @@ class Simulation:
                                    op=__import__("mpi4py").MPI.MAX)
         return dict(kinetic_energy=kinetic, elastic_energy=elastic,
                     gravity_energy=potential,
+                    total_energy=kinetic + elastic + potential,
                     max_constraint_violation=self.r.norm(PETSc.NormType.INFINITY),
                     max_contact_residual=self.rf.norm(PETSc.NormType.INFINITY),
                     max_strain=max_strain, centroid=self.centroid(eps).tolist())
@@ -198,9 +206,14 @@ class Simulation:
         xs = mpi.gather(self.x.getArray(readonly=True), root=0)
         vs = mpi.gather(self.v.getArray(readonly=True), root=0)
         # an integrator's own state (same on every rank), e.g. its step size
-        state = getattr(self.integrator, "state", None)
-        extra = dict(initial_lowest=self.initial_lowest, t0=self.t0,
-                     step0=self.step0, integrator=state() if state else None,
+        # the integrator's own state: each rank's part of its arrays, gathered
+        state = {k: mpi.gather(np.atleast_1d(a), root=0) if np.ndim(a) else a
+                 for k, a in self.integrator.state().items()}
+        if self.comm.rank == 0:
+            state = {k: np.concatenate(a) if isinstance(a, list) else a
+                     for k, a in state.items()}
+        extra = dict(initial_lowest=self.initial_lowest, integrator=state,
+                     steps_taken=self.steps_taken, energy=self.energy,
                      restarted_from=self.restarted_from)
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
@@ -251,19 +264,26 @@ class Simulation:
         self.frames = ckpt.frames if self.comm.rank == 0 else []
         extra = ckpt.extra
         self.initial_lowest = extra.get("initial_lowest", self.initial_lowest)
-        self.t0, self.step0 = extra.get("t0", 0.0), extra.get("step0", 0)
-        if ckpt.fingerprint.get("dt") != mine["dt"]:
-            self.t0, self.step0 = self.t, self.step_count
-        set_state = getattr(self.integrator, "set_state", None)
-        if set_state and extra.get("integrator") is not None and \
-                ckpt.fingerprint.get("integrator") == mine["integrator"]:
-            set_state(extra["integrator"])
+        self.steps_taken = list(extra.get("steps_taken", []))
+        self.energy = [tuple(e) for e in extra.get("energy", [])]
+        same = [ckpt.fingerprint.get(k) == mine[k] for k in ("integrator", "dt")]
+        if extra.get("integrator") and all(same):       # else it starts afresh
+            self.integrator.set_state(self.local_parts(extra["integrator"]))
         self.restarted_from = [os.path.abspath(path), ckpt.step, ckpt.t]
         self.snapshots = [s for s in self.snapshots if s > self.t + 1e-9]
         same = self.out and os.path.realpath(os.path.dirname(os.path.abspath(path))) \
             == os.path.realpath(self.out)
         self.series_from = (ckpt.step, "") if same else (
             None, f"continues {path} (step {ckpt.step}, t = {ckpt.t:g} s)")
+
+    def local_parts(self, saved):
+        """This rank's slices of gathered integrator state arrays (the local
+        sizes are those of the integrator's own ``state()``)."""
+        mpi, out = self.comm.tompi4py(), {}
+        for k, a in self.integrator.state().items():
+            lo = mpi.exscan(len(a) if np.ndim(a) else 0) or 0
+            out[k] = np.asarray(saved[k])[lo:lo + len(a)] if np.ndim(a) else saved[k]
+        return out
 
     def progress(self, m):
         """One line: step, t, running totals of Newton and KSP iterations,
@@ -272,9 +292,11 @@ class Simulation:
             elapsed = time.perf_counter() - self.clock[0]
             done = (self.t - self.clock[1]) / (self.clock[2] - self.clock[1])
             left = elapsed * (1 - done) / done if done > 0 else float("nan")
+            dt = self.steps_taken[-1] if self.steps_taken else self.integrator.dt
             PETSc.Sys.Print(
-                f"step {self.step_count:6d}  t {self.t:.4f} s  total its: newton "
-                f"{self.stats['newton']:5d} ksp {self.stats['ksp']:5d}  E_kin "
+                f"step {self.step_count:6d}  t {self.t:.4f} s  dt {dt:.2e} s  total "
+                f"its: newton {self.stats['newton']:5d} ksp {self.stats['ksp']:5d} "
+                f"rejected {self.stats['rejected']:3d}  E_kin "
                 f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
                 f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
                 f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
@@ -344,11 +366,12 @@ class Simulation:
     def run(self, t_end):
         """Integrate to t_end. Returns the summary dict; raises SimulationError
         (one line: step, time, quantity) or interrupts.Interrupted."""
-        dt = self.integrator.dt
-        nsteps = int(round((t_end - self.t) / dt))
         start = self.start = time.perf_counter()
         self.clock = (start, self.t, t_end)
         self.at = (self.step_count, self.t)
+        tiny = 1e-12 * max(1.0, abs(t_end))
+        if not self.energy:
+            self.record_energy(self.measures())
         stage = PETSc.Log.Stage("Time stepping")
         interrupts.hold(True)
         try:
@@ -356,24 +379,30 @@ class Simulation:
                 if self.output is not None:     # no summary of an earlier run
                     self.output.rank0(self.output.remove, "summary.json")
                 self.write_output(*self.geometry())
-            for n in range(nsteps):
-                self.at = (self.step_count + 1, self.t + dt)
+            while self.t < t_end - tiny:
+                stop = t_end
+                if self.snapshots and self.t < self.snapshots[0] - tiny:
+                    stop = min(stop, self.snapshots[0])
+                self.at = (self.step_count + 1, min(stop, self.t + self.integrator.dt))
                 stage.push()
                 try:
-                    st = self.integrator.step(self.t, self.x, self.v)
+                    st = self.integrator.step(self.t, self.x, self.v, stop)
                 finally:
                     stage.pop()
                 self.step_count += 1
-                self.t = self.t0 + (self.step_count - self.step0) * dt
-                for k in st:
+                landed = abs(self.t + st["dt"] - stop) <= tiny
+                self.t = stop if landed else self.t + st["dt"]
+                self.steps_taken.append(st["dt"])
+                for k in self.stats:
                     self.stats[k] += st[k]
                 if self.adapt is not None:
                     self.adapt(self)
                 signum = self.guard()
-                last = n == nsteps - 1
+                last = self.t >= t_end - tiny
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
                     m = self.measures()
+                    self.record_energy(m)
                     self.progress(m)
                     self.write_output(*self.geometry())
                 self.after_step(signum)
@@ -392,16 +421,42 @@ class Simulation:
             self.close()
         return summary
 
+    def record_energy(self, m):
+        """Keep (t, kinetic, elastic + gravity energy) of a progress point."""
+        self.energy.append((self.t, m["kinetic_energy"],
+                            m["elastic_energy"] + m["gravity_energy"]))
+
+    def energy_record(self):
+        """Total energy E = T + E_el + E_g over the run and its drift
+        E(t_end) − E(0), absolute (J) and over the largest kinetic energy."""
+        t, kin, pot = np.array(self.energy).T
+        total = kin + pot
+        drift = float(total[-1] - total[0])
+        return dict(energy_drift=drift,
+                    energy_drift_relative=drift / max(kin.max(), 1e-300),
+                    energy_history=dict(t=t.tolist(), kinetic=kin.tolist(),
+                                        total=total.tolist()))
+
     def summary(self):
         m = self.measures()
         P, pts = self.geometry()
         s = self.system
+        taken = np.array(self.steps_taken or [self.integrator.dt])
+        control = getattr(self.integrator, "control", None)
         rec = dict(scene=self.scene, model=s.kind,
                    integrator=self.integrator.name, steps=self.step_count,
-                   dt=self.integrator.dt, t_end=self.t, wall_time_s=self.wall_time,
+                   dt=self.integrator.dt, dt_min=float(taken.min()),
+                   dt_max=float(taken.max()),
+                   adaptive=bool(control is not None and control.adaptive),
+                   rejected_steps=self.stats["rejected"],
+                   t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
                    ksp_iterations=self.stats["ksp"], **m)
+        if rec["adaptive"]:
+            rec.update(rtol=control.rtol, atol=control.atol)
+        if self.energy:
+            rec.update(self.energy_record())
         if self.comm.rank == 0:
             flat = pts.reshape(-1, 3)
             low = flat[np.argmin(flat[:, 1])]

@@ -8,8 +8,14 @@ supplies M, its scalar factor m (M = m ⊗ I₃), C, c, d, ``forces(x, v, Q)``,
 The integrators never see a yarn.
 
 Drift control is by projection at the velocity level: every step asks
-C ε_{n+1} = d exactly (C v_{n+1} = (d − C ε_n)/h), so constraint drift stays
-at the round-off of the linear solves.
+C ε_{n+1} = d exactly (C ε̇_{n+1} = (d − C ε̂)/κ for an end point
+ε_{n+1} = ε̂ + κ ε̇_{n+1}), so constraint drift stays at the round-off of the
+linear solves.
+
+Every integrator has ``step(t, ε, ε̇, t_stop)`` (one accepted step, in place;
+returns the step ``dt`` taken and iteration counts), ``dt`` (the next step)
+and ``state()``/``set_state()`` for checkpoints. Step sizes are chosen by a
+``solvers.stepping.StepControl``: fixed, or by a local error estimate.
 """
 
 import numpy as np
@@ -18,8 +24,10 @@ from petsc4py import PETSc
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
                      solve_saddle)
+from .stepping import PositionHistory, StepControl
 
-__all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "INTEGRATORS"]
+__all__ = ["SimulationError", "SymplecticEuler", "NewtonStepper", "BackwardEuler",
+           "GeneralizedAlpha", "BDF2", "INTEGRATORS"]
 
 EV_SOLVE = PETSc.Log.Event("knitSaddleSolve")
 EV_FACTOR = PETSc.Log.Event("knitFactor")
@@ -87,8 +95,8 @@ class SymplecticEuler:
 
     name = "symplectic"
 
-    def __init__(self, system, dt):
-        self.system, self.dt = system, dt
+    def __init__(self, system, dt, control=None):
+        self.system, self.control = system, control or StepControl(dt)
         self.saddle = SaddlePoint(system.m, system.c)
         self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_")
         with EV_FACTOR:
@@ -97,8 +105,18 @@ class SymplecticEuler:
         self.Q, self.Mv = system.M.createVecLeft(), system.M.createVecLeft()
         self.Cx = system.C.createVecLeft()
 
-    def step(self, t, x, v):
-        s, h = self.system, self.dt
+    @property
+    def dt(self):
+        return self.control.dt
+
+    def state(self):
+        return self.control.state()
+
+    def set_state(self, st):
+        self.control.set_state(st)
+
+    def step(self, t, x, v, t_stop=None):
+        s, h = self.system, self.control.propose(t, t_stop)[0]
         s.forces(x, v, self.Q)
         s.M.mult(v, self.Mv)
         self.Mv.axpy(h, self.Q)
@@ -116,27 +134,51 @@ class SymplecticEuler:
             its += self.ksp.getIterationNumber()
             vv[k::3] = self.saddle.split(self.sol)[0]
         x.axpy(h, v)
-        return {"newton": 0, "ksp": its}
+        return {"newton": 0, "ksp": its, "rejected": 0, "dt": h}
 
 
-class BackwardEuler:
-    """Implicit (backward) Euler with Newton (PETSc SNES, prefix ``-<kind>_``).
+class NewtonStepper:
+    """One implicit step on the constrained saddle point, solved by Newton
+    (PETSc SNES, prefix ``-<kind>_``); the integrators are small subclasses.
 
-    Unknowns z = (v_{n+1}, μ) with μ = −hλ; residual
+    The unknowns are z = (v, μ), v = ε̇_{n+1} and μ = −σλ. A method gives,
+    for a step h, the end point ε_{n+1} = ε̂ + κ v, the point where forces
+    are evaluated, ε_f = (1 − w) ε_n + w ε_{n+1} (and ε̇_f alike), and
 
-        F_u = M (v − v_n) − h Q(ε_n + h v, v) + Cᵀ μ,
-        F_λ = C v − (d − C ε_n) / h,
+        F_u = M (v − v̂) − σ Q(ε_f, ε̇_f) + Cᵀ μ,
+        F_λ = C v − (d − C ε̂) / κ,
 
-    and Jacobian [A Cᵀ; C 0] with A = h² K + (1 + h c_d) M, assembled as one
-    AIJ matrix; its KSP/PC is chosen by ``-<kind>_ksp_type``,
-    ``-<kind>_pc_type`` … (MUMPS LU by default).
+    so C ε_{n+1} = d holds to the round-off of the solve at every step. With
+    K = ∂²E/∂ε² and Q_d = −c_d M ε̇ the Jacobian is [A Cᵀ; C 0],
+
+        A = σ w κ K(ε_f) + (1 + σ w c_d) M,
+
+    assembled as one AIJ matrix (or dense for the reduced model on one rank)
+    and solved by ``-<kind>_ksp_type``, ``-<kind>_pc_type`` … (MUMPS LDLᵀ by
+    default). ``-<kind>_snes_type ksponly`` makes the step linearly implicit
+    (one Newton iteration).
+
+    Why not PETSc's TS: TSALPHA2 and TSBDF integrate every component of
+    their state, so the multipliers λ of the index-3 rows C ε = d would be
+    carried as differential unknowns (TSALPHA2 gives them Newmark
+    "velocities" and "accelerations", and both put them into the local
+    error estimate), and PETSc 3.18 has no hook for the consistent start
+    (projected ε̇₀ and ε̈₀) the constrained α-method needs. Differentiating
+    the constraints to index 1 would let C ε = d drift. So the step is
+    written here, on the same SNES, and the step control is ``StepControl``.
+
+    Steps are fixed (``dt``) unless ``control`` is adaptive. A failed Newton
+    solve at a fixed step is retried as two half steps, down to
+    dt / 2^max_halvings; under step control it is a rejected step.
     """
 
-    name = "implicit"
+    order = 1
+    newton_ctol = 0.0
 
-    def __init__(self, system, dt):
-        self.system, self.dt = system, dt
-        prefix = f"{system.kind}_"
+    def __init__(self, system, dt, control=None):
+        self.system = system
+        self.control = control or StepControl(dt)
+        self.prefix = prefix = f"{system.kind}_"
         K = system.stiffness(system.rest_state())
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
@@ -149,38 +191,82 @@ class BackwardEuler:
         self.snes.setFunction(self._residual, self.F)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
-        # converged when the update moves ε by < 1e-9 yarn radii
+        # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
+        # fixed steps, 1e-2 of the local error tolerance under step control
         self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: 1e-9 * system.fabric.radius / self.h))
+            self.saddle, lambda: self.newton_tol / self.kappa))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
-        ksp = saddle_ksp(self.saddle, prefix)
-        self.snes.setKSP(ksp)
+        self.ksp = saddle_ksp(self.saddle, prefix)
+        self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
-        self.v, self.xt = system.M.createVecLeft(), system.M.createVecLeft()
-        self.Q, self.Mv = system.M.createVecLeft(), system.M.createVecLeft()
+        new = system.M.createVecLeft
+        self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
+        self.vhat, self.xhat, self.e = new(), new(), new()
+        self.Q, self.Mv, self.tmp = new(), new(), new()
         self.mu, self.Cx = system.C.createVecLeft(), system.C.createVecLeft()
-        self.tmp = system.M.createVecLeft()
+        self.lam = system.C.createVecLeft()          # −λ of the last step
         self.xn = self.vn = None
-        self.h = dt
+        self.h = self.sigma = self.kappa = dt
+        self.newton_tol = 1e-9 * system.fabric.radius
+        self.w = 1.0
         self.max_halvings = 6
 
+    @property
+    def dt(self):
+        """The fixed step, or the next trial step under step control."""
+        return self.control.dt
+
+    # -- the method: subclasses ----------------------------------------------
+    def coefficients(self, h):
+        """Set σ, κ, w, v̂ and ε̂ for a step h from (self.xn, self.vn)."""
+        raise NotImplementedError
+
+    def predict(self, h, v):
+        """Explicit predictor of ε̇_{n+1} (the first Newton guess), into v."""
+        raise NotImplementedError
+
+    def one_step_error(self, h):
+        """Local error estimate of ε_{n+1} into self.e from this step alone
+        (until ``history`` knows enough positions)."""
+        raise NotImplementedError
+
+    def error(self, h):
+        """Local error estimate of ε_{n+1} into self.e (adaptive steps): from
+        the position history (``PositionHistory``), else ``one_step_error``."""
+        if not self.history.estimate(self.xe.getArray(readonly=True), h,
+                                     self.e.getArray()):
+            self.one_step_error(h)
+
+    def accepted(self, h):
+        """Update the method's own history after an accepted step."""
+
+    def start(self, x, v):
+        """Prepare the first step from (x, v)."""
+
+    # -- Newton ----------------------------------------------------------------
     def _unpack(self, z):
         u, lam = self.saddle.split(z)
         self.v.getArray()[:] = u
         self.mu.getArray()[:] = lam
-        self.xn.copy(self.xt)
-        self.xt.axpy(self.h, self.v)
+        self.xe.waxpy(self.kappa, self.v, self.xhat)
+        if self.w == 1.0:
+            self.xe.copy(self.xf)
+            self.v.copy(self.vf)
+        else:
+            self.xf.waxpy(-1.0, self.xn, self.xe)      # ε_n + w (ε_{n+1} − ε_n)
+            self.xf.aypx(self.w, self.xn)
+            self.vf.waxpy(-1.0, self.vn, self.v)
+            self.vf.aypx(self.w, self.vn)
 
     def _residual(self, snes, z, F):
-        s, h = self.system, self.h
+        s = self.system
         self._unpack(z)
-        s.forces(self.xt, self.v, self.Q)
-        self.v.copy(self.tmp)
-        self.tmp.axpy(-1.0, self.vn)
+        s.forces(self.xf, self.vf, self.Q)
+        self.tmp.waxpy(-1.0, self.vhat, self.v)
         s.M.mult(self.tmp, self.Mv)
-        self.Mv.axpy(-h, self.Q)
+        self.Mv.axpy(-self.sigma, self.Q)
         fu, fl = self.saddle.split(F)
         fu[:] = self.Mv.getArray(readonly=True)
         if self.saddle.constrained:
@@ -190,46 +276,39 @@ class BackwardEuler:
             fl[:] = self.Cx.getArray(readonly=True) - self.g
 
     def _jacobian(self, snes, z, J, P):
-        s, h = self.system, self.h
+        s = self.system
         self._unpack(z)
-        K = s.stiffness(self.xt)
+        K = s.stiffness(self.xf)
         K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        self.A.scale(h * h)
-        self.A.axpy(1.0 + h * s.material.damping, s.M,
+        sw = self.sigma * self.w
+        self.A.scale(sw * self.kappa)
+        self.A.axpy(1.0 + sw * s.material.damping, s.M,
                     PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle.update()
 
-    def step(self, t, x, v):
-        """Advance (ε, ε̇) by dt; a failed Newton solve is retried as two half
-        steps, down to dt / 2^max_halvings, before the step fails."""
-        stats = {"newton": 0, "ksp": 0}
-        try:
-            self._advance(x, v, self.dt, 0, stats)
-        except SolverFailure as err:          # a smaller step would not help
-            raise SimulationError(str(err)) from None
-        return stats
-
-    def _advance(self, x, v, h, depth, stats):
-        try:
-            self._solve(x, v, h, stats)
-        except SimulationError:
-            if depth >= self.max_halvings:
-                raise
-            for _ in range(2):
-                self._advance(x, v, h / 2, depth + 1, stats)
-
-    def _solve(self, x, v, h, stats):
+    def _solve(self, h, stats):
+        """Newton for the step h from (self.xn, self.vn): leaves ε_{n+1} in
+        self.xe and ε̇_{n+1} in self.v; raises SimulationError on failure."""
         s = self.system
-        self.h, self.xn, self.vn = h, x, v
-        s.C.mult(x, self.Cx)
-        self.g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) / h
+        self.h = h
+        self.coefficients(h)
+        s.C.mult(self.xhat, self.Cx)
+        self.g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) \
+            / self.kappa
+        c = self.control
+        if c.adaptive:
+            # the update of ε small against the local error tolerance
+            scale = c.atol + c.rtol * self.xn.norm(PETSc.NormType.INFINITY)
+            self.newton_tol = max(self.newton_ctol * scale,
+                                  1e-9 * s.fabric.radius)
+        self.predict(h, self.tmp)
         zu, zl = self.saddle.split(self.z)
-        zu[:] = v.getArray(readonly=True)
-        zl[:] = 0.0
+        zu[:] = self.tmp.getArray(readonly=True)
+        zl[:] = self.lam.getArray(readonly=True) * self.sigma
         if not self.user_atol:
-            s.M.mult(v, self.Mv)
-            scale = self.Mv.norm() + h * s.Qg.norm()
-            floor = 1e-14 * s.total_mass * s.fabric.radius / h
+            s.M.mult(self.vn, self.Mv)
+            scale = self.Mv.norm() + self.sigma * s.Qg.norm()
+            floor = 1e-14 * s.total_mass * s.fabric.radius / self.kappa
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
         try:
             solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
@@ -245,8 +324,302 @@ class BackwardEuler:
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
                                   f"h = {h:.3g} s)")
         self._unpack(self.z)
+
+    def _commit(self, x, v, h):
+        self.accepted(h)
+        if self.control.adaptive:
+            self.history.push(self.xe.getArray(readonly=True), h)
+        self.lam.getArray()[:] = self.mu.getArray(readonly=True) / self.sigma
+        self.xe.copy(x)
         self.v.copy(v)
-        x.axpy(h, v)
+
+    # -- the step ------------------------------------------------------------
+    def step(self, t, x, v, t_stop=None):
+        """Advance (ε, ε̇) in place by one accepted step, landing on t_stop
+        when it is within reach. Returns the step taken ``dt``, the Newton
+        and KSP iterations and the rejected trial steps."""
+        if self.xn is None:
+            self.xn, self.vn = x.duplicate(), v.duplicate()
+            x.copy(self.xn)
+            v.copy(self.vn)
+            self.start(x, v)
+            self.history.start(x.getArray(readonly=True))
+        stats = {"newton": 0, "ksp": 0, "rejected": 0}
+        c = self.control
+        while True:
+            h, landed = c.propose(t, t_stop)
+            x.copy(self.xn)
+            v.copy(self.vn)
+            if not c.adaptive:
+                self._advance(x, v, h, 0, stats)
+                stats["dt"] = h
+                return stats
+            try:
+                self._solve(h, stats)
+            except SimulationError as err:
+                stats["rejected"] += 1
+                if not c.newton_failed(h):
+                    raise SimulationError(f"{err}; the step fell below "
+                                          f"-knit_dt_min {c.dt_min:g} s") from None
+                continue
+            self.error(h)
+            err = c.norm(self.system.comm, self.e.getArray(readonly=True),
+                         self.xn.getArray(readonly=True),
+                         self.xe.getArray(readonly=True))
+            if c.judge(err, h, self.order, landed):
+                self._commit(x, v, h)
+                stats["dt"] = h
+                return stats
+            stats["rejected"] += 1
+
+    def _advance(self, x, v, h, depth, stats):
+        """A fixed step h, retried as two half steps when Newton fails."""
+        try:
+            x.copy(self.xn)
+            v.copy(self.vn)
+            self._solve(h, stats)
+            self._commit(x, v, h)
+        except SimulationError:
+            if depth >= self.max_halvings:
+                raise
+            for _ in range(2):
+                self._advance(x, v, h / 2, depth + 1, stats)
+
+    # -- checkpoints -----------------------------------------------------------
+    def state(self):
+        """Everything beyond (t, ε, ε̇) the next step needs to continue
+        bit-exactly: local arrays and floats (collective only in the sense
+        that every rank holds its own part)."""
+        st = self.control.state()
+        if self.history.x:
+            st.update(self.history.state())
+        st["lam"] = self.lam.getArray(readonly=True).copy()
+        return st
+
+    def set_state(self, st):
+        self.control.set_state(st)
+        if "history_t" in st:
+            self.history.set_state(st)
+        self.lam.getArray()[:] = st["lam"]
 
 
-INTEGRATORS = {"symplectic": SymplecticEuler, "implicit": BackwardEuler}
+class BackwardEuler(NewtonStepper):
+    """Implicit (backward) Euler, order 1:
+
+        ε_{n+1} = ε_n + h ε̇_{n+1},
+        M (ε̇_{n+1} − ε̇_n) = h Q(ε_{n+1}, ε̇_{n+1}) + h Cᵀλ,
+
+    (σ = κ = h, w = 1, v̂ = ε̇_n, ε̂ = ε_n), so A = h² K + (1 + h c_d) M.
+    Predictor ε̇_n + h a_n with a_n = (ε̇_n − ε̇_{n−1}) / h_{n−1}; local error
+    e = ½ h² ε̈ (``PositionHistory`` with c = ½; on the first step
+    ½ h (ε̇_{n+1} − ε̇_n)).
+    """
+
+    name = "implicit"
+    order = 1
+
+    def __init__(self, system, dt, control=None):
+        super().__init__(system, dt, control)
+        self.a = system.M.createVecLeft()      # backward-difference ε̈_n
+        self.history = PositionHistory(1, 0.5)
+
+    def coefficients(self, h):
+        self.sigma = self.kappa = h
+        self.w = 1.0
+        self.vn.copy(self.vhat)
+        self.xn.copy(self.xhat)
+
+    def predict(self, h, v):
+        v.waxpy(h, self.a, self.vn)
+
+    def one_step_error(self, h):
+        self.e.waxpy(-1.0, self.vn, self.v)
+        self.e.scale(0.5 * h)
+
+    def accepted(self, h):
+        self.a.waxpy(-1.0, self.vn, self.v)
+        self.a.scale(1.0 / h)
+
+    def state(self):
+        return dict(super().state(), a=self.a.getArray(readonly=True).copy())
+
+    def set_state(self, st):
+        super().set_state(st)
+        self.a.getArray()[:] = st["a"]
+
+
+class GeneralizedAlpha(NewtonStepper):
+    """Generalized-α (Chung & Hulbert, J. Appl. Mech. 60, 1993), order 2,
+    with forces at the α-interpolated state (as PETSc's TSALPHA2):
+
+        M a_{n+1−αm} = Q(ε_{n+1−αf}, ε̇_{n+1−αf}) + Cᵀλ,
+        ε_{n+1} = ε_n + h ε̇_n + h² ((½ − β) a_n + β a_{n+1}),
+        ε̇_{n+1} = ε̇_n + h ((1 − γ) a_n + γ a_{n+1}),
+
+    x_{n+1−α} = (1 − α) x_{n+1} + α x_n, and from the spectral radius ρ∞ at
+    infinite frequency (1: no numerical dissipation, 0: annihilation)
+
+        αm = (2ρ∞ − 1)/(ρ∞ + 1),  αf = ρ∞/(ρ∞ + 1),
+        γ = ½ − αm + αf,           β = ¼ (1 − αm + αf)².
+
+    In the Newton unknown v = ε̇_{n+1}: a_{n+1} = (v − ε̇_n − h(1 − γ)a_n)/(γh),
+    κ = hβ/γ, w = 1 − αf, σ = γh/(1 − αm),
+    v̂ = ε̇_n + h(1 − γ − γαm/(1 − αm)) a_n and
+    ε̂ = ε_n + h ε̇_n + h²(½ − β)a_n − κ(ε̇_n + h(1 − γ)a_n).
+
+    The start projects ε̇₀ onto C ε̇ = 0 and solves M a₀ = Q₀ + Cᵀλ,
+    C a₀ = 0 (the same saddle point with A = M), so C a_n = 0, C ε̇_n = 0
+    and C ε_n = d at every step. a_n approximates ε̈(t_n + (αm − αf)h);
+    the local error of ε_{n+1} is c h³ ε⃛, c = β − ⅙ + (αm − αf)/2,
+    estimated from the last three positions (``PositionHistory``; with
+    h ε⃛ ≈ a_{n+1} − a_n on the first two steps). Predictor: a_{n+1} ≈ a_n.
+    """
+
+    name = "alpha"
+    order = 2
+
+    def __init__(self, system, dt, control=None, rho_inf=0.5):
+        super().__init__(system, dt, control)
+        r = rho_inf
+        self.rho_inf = r
+        self.alpha_m, self.alpha_f = (2 * r - 1) / (r + 1), r / (r + 1)
+        self.gamma = 0.5 - self.alpha_m + self.alpha_f
+        self.beta = 0.25 * (1 - self.alpha_m + self.alpha_f) ** 2
+        self.a, self.a1 = system.M.createVecLeft(), system.M.createVecLeft()
+        self.started = False
+        self.c_error = self.beta - 1.0 / 6.0 + 0.5 * (self.alpha_m - self.alpha_f)
+        self.history = PositionHistory(2, self.c_error)
+
+    def coefficients(self, h):
+        am, g, b = self.alpha_m, self.gamma, self.beta
+        self.kappa = h * b / g
+        self.w = 1.0 - self.alpha_f
+        self.sigma = g * h / (1.0 - am)
+        self.vhat.waxpy(h * (1.0 - g - g * am / (1.0 - am)), self.a, self.vn)
+        self.xhat.waxpy(h, self.vn, self.xn)
+        self.xhat.axpy(h * h * (0.5 - b) - self.kappa * h * (1.0 - g), self.a)
+        self.xhat.axpy(-self.kappa, self.vn)
+
+    def predict(self, h, v):
+        v.waxpy(h, self.a, self.vn)
+
+    def _acceleration(self, h, out):
+        """a_{n+1} = (v − ε̇_n − h(1 − γ)a_n)/(γh) into out."""
+        out.waxpy(-1.0, self.vn, self.v)
+        out.axpy(-h * (1.0 - self.gamma), self.a)
+        out.scale(1.0 / (self.gamma * h))
+
+    def one_step_error(self, h):
+        self._acceleration(h, self.a1)
+        self.e.waxpy(-1.0, self.a, self.a1)
+        self.e.scale(self.c_error * h * h)
+
+    def accepted(self, h):
+        self._acceleration(h, self.a1)
+        self.a1.copy(self.a)
+
+    def start(self, x, v):
+        """Consistent start unless a checkpoint gave a₀: ε̇₀ ← the M-orthogonal
+        projection onto C ε̇ = 0, then a₀ with C a₀ = 0."""
+        if self.started:
+            return
+        s = self.system
+        self.A.zeroEntries()
+        self.A.axpy(1.0, s.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle.update()
+        rhs, sol = self.saddle.createVec(), self.saddle.createVec()
+        s.M.mult(v, self.Mv)
+        self._start_solve(rhs, sol, self.Mv, v)
+        s.forces(x, v, self.Q)
+        self._start_solve(rhs, sol, self.Q, self.a)
+        self.lam.getArray()[:] = self.saddle.split(sol)[1]
+        v.copy(self.vn)
+        rhs.destroy()
+        sol.destroy()
+        self.started = True
+
+    def _start_solve(self, rhs, sol, b, out):
+        """[M Cᵀ; C 0] [out; ·] = [b; 0]."""
+        ru, rl = self.saddle.split(rhs)
+        ru[:] = b.getArray(readonly=True)
+        rl[:] = 0.0
+        try:
+            self.ksp.solve(rhs, sol)
+        except PETSc.Error as err:
+            raise SimulationError(f"the {self.prefix} start solve failed with "
+                                  f"PETSc error {err.ierr}") from None
+        out.getArray()[:] = self.saddle.split(sol)[0]
+
+    def state(self):
+        return dict(super().state(), a=self.a.getArray(readonly=True).copy())
+
+    def set_state(self, st):
+        super().set_state(st)
+        self.a.getArray()[:] = st["a"]
+        self.started = True
+
+
+class BDF2(NewtonStepper):
+    """Variable-step BDF2 on (ε, ε̇), order 2, L-stable: with ω = h/h_{n−1},
+
+        y_{n+1} − (1 + ω)²/(1 + 2ω) y_n + ω²/(1 + 2ω) y_{n−1} = h (1 + ω)/(1 + 2ω) ẏ_{n+1}
+
+    for y = ε and, times M, for y = ε̇ (ẏ = ε̈, M ε̈ = Q + Cᵀλ): σ = κ =
+    h(1 + ω)/(1 + 2ω), w = 1, ε̂ and v̂ the history terms. Unresolved stiff
+    modes (the yarns' axial vibration) are damped out in a step, where the
+    generalized-α method keeps ρ∞ of them and its nonlinear energy balance
+    can feed them. The first step is backward Euler. Local error
+    −(2/9) h³ ε⃛ (``PositionHistory``); predictor ε̇_n + h (ε̇_n − ε̇_{n−1})/h_{n−1}.
+    """
+
+    name = "bdf2"
+    order = 2
+
+    def __init__(self, system, dt, control=None):
+        super().__init__(system, dt, control)
+        self.x1, self.v1 = system.M.createVecLeft(), system.M.createVecLeft()
+        self.h1 = 0.0                       # 0: no previous step yet
+        self.history = PositionHistory(2, -2.0 / 9.0)
+
+    def coefficients(self, h):
+        if self.h1 == 0.0:                  # backward Euler
+            self.sigma = self.kappa = h
+            self.vn.copy(self.vhat)
+            self.xn.copy(self.xhat)
+            return
+        om = h / self.h1
+        c0, c1 = (1 + om) ** 2 / (1 + 2 * om), om ** 2 / (1 + 2 * om)
+        self.sigma = self.kappa = h * (1 + om) / (1 + 2 * om)
+        for hat, y, y1 in ((self.vhat, self.vn, self.v1), (self.xhat, self.xn, self.x1)):
+            y.copy(hat)
+            hat.scale(c0)
+            hat.axpy(-c1, y1)
+
+    def predict(self, h, v):
+        self.vn.copy(v)
+        if self.h1:
+            v.scale(1 + h / self.h1)
+            v.axpy(-h / self.h1, self.v1)
+
+    def one_step_error(self, h):
+        self.e.waxpy(-1.0, self.vn, self.v)
+        self.e.scale(0.5 * h)
+
+    def accepted(self, h):
+        self.xn.copy(self.x1)
+        self.vn.copy(self.v1)
+        self.h1 = h
+
+    def state(self):
+        return dict(super().state(), x1=self.x1.getArray(readonly=True).copy(),
+                    v1=self.v1.getArray(readonly=True).copy(), h1=self.h1)
+
+    def set_state(self, st):
+        super().set_state(st)
+        self.x1.getArray()[:] = st["x1"]
+        self.v1.getArray()[:] = st["v1"]
+        self.h1 = float(st["h1"])
+
+
+INTEGRATORS = {"alpha": GeneralizedAlpha, "bdf2": BDF2, "implicit": BackwardEuler,
+               "symplectic": SymplecticEuler}

@@ -98,8 +98,8 @@ def test_deform_metrics(tmp_path):
 
 def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
     p = knitfem("run", "-knit_scene", "hanging", "-knit_rows", "2", "-knit_cols", "2",
-                "-knit_t_end", "0.04", "-knit_snapshots", "0.02,0.04", "-o",
-                str(tmp_path), "-knit_animation", "hanging.gif", "-log_view")
+                "-knit_t_end", "0.04", "-knit_dt", "1e-2", "-knit_snapshots", "0.02,0.04",
+                "-o", str(tmp_path), "-knit_animation", "hanging.gif", "-log_view")
     assert p.returncode == 0, p.stderr
     stages = re.findall(r"^\s*\d+:\s+([^:]+):", p.stdout, flags=re.M)
     assert {"Model set-up", "Solver set-up", "Time stepping"} <= set(stages)

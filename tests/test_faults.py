@@ -22,7 +22,8 @@ pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
                                 reason="runs knitfem in subprocesses")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SMALL = ["-knit_rows", "2", "-knit_cols", "2", "-knit_snapshots", "10"]
+SMALL = ["-knit_rows", "2", "-knit_cols", "2", "-knit_snapshots", "10", "-knit_dt", "1e-2",
+         "-knit_integrator", "implicit"]
 
 
 def command(*args):
@@ -349,9 +350,9 @@ def test_integrator_state_travels_with_the_checkpoint(tmp_path):
             super().__init__(system, dt)
             self.calls, self.h_next = 0, np.array([dt / 3, 1.0])
 
-        def step(self, t, x, v):
+        def step(self, t, x, v, t_stop=None):
             self.calls += 1
-            return super().step(t, x, v)
+            return super().step(t, x, v, t_stop)
 
         def state(self):
             return dict(calls=self.calls, h_next=self.h_next)

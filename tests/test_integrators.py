@@ -1,0 +1,167 @@
+"""Implicit integrators and step control: exactness, order, constraints,
+error control, checkpoint state."""
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from helpers import COMM, gather, jersey
+from knitfem.model import FullModel, Material
+from knitfem.scenes import make_fabric
+from solvers.integrators import BDF2, BackwardEuler, GeneralizedAlpha, SimulationError
+from solvers.stepping import PositionHistory, StepControl
+
+SELF = PETSc.COMM_SELF
+
+
+def pendulum(damping=0.0, EA=0.5, EI=1e-7):
+    """A yarn pinned at one end, starting as an arc: it swings under gravity."""
+    fab = make_fabric("catenary", length=0.05, span=0.04, nseg=8)
+    fab.fixed = (np.zeros(1, int), np.zeros(1))
+    return FullModel(SELF, fab, Material(EA=EA, EI=EI, gravity=9.81,
+                                         damping=damping))
+
+
+def integrate(integ, system, t_end, t_stops=()):
+    """Steps to t_end (landing on t_stops); returns x, v and the step count."""
+    x, v = system.rest_state(), system.rest_state()
+    v.zeroEntries()
+    t, n = 0.0, 0
+    for stop in (*t_stops, t_end):
+        while t < stop - 1e-12:
+            st = integ.step(t, x, v, stop)
+            t = stop if abs(t + st["dt"] - stop) < 1e-12 else t + st["dt"]
+            n += 1
+    return x, v, n
+
+
+@pytest.mark.parametrize("rho_inf", [1.0, 0.5, 0.0])
+def test_generalized_alpha_free_fall_is_exact(rho_inf):
+    """ε̈ = −g ŷ is quadratic in t: Newmark with a consistent a₀ is exact."""
+    fab = jersey(2, 2)
+    g, dt, n = 9.81, 1e-3, 20
+    model = FullModel(COMM, fab, Material(EA=5.0, EI=1e-6, gravity=g))
+    integ = GeneralizedAlpha(model, dt, rho_inf=rho_inf)
+    x, v, _ = integrate(integ, model, n * dt)
+    disp = gather(COMM, x).reshape(-1, 3) - fab.X.reshape(-1, 3)
+    t = n * dt
+    assert np.allclose(disp[:, 1], -0.5 * g * t**2, rtol=1e-9, atol=0)
+    assert np.abs(disp[:, [0, 2]]).max() < 1e-12
+    assert np.allclose(gather(COMM, v).reshape(-1, 3)[:, 1], -g * t, rtol=1e-9)
+
+
+@pytest.mark.parametrize("cls,order,EA", [(GeneralizedAlpha, 2, 1e-2), (BDF2, 2, 1e-3),
+                                          (BackwardEuler, 1, 1e-2)])
+def test_measured_order_on_a_swinging_yarn(cls, order, EA):
+    """Richardson: the differences of runs at h, h/2, h/4 shrink by 2^p. The
+    yarn is soft so that h ω < 1 for its axial and bending modes (the
+    asymptotic range); for BDF2 softer still, as its damping of a mode at
+    h ω ≈ 0.1 otherwise dominates the differences."""
+    model = pendulum(EA=EA, EI=1e-9)
+    T, h = 0.02, 2e-4
+    ends = [gather(SELF, integrate(cls(model, h / k), model, T)[0]) for k in (1, 2, 4)]
+    ratio = np.linalg.norm(ends[0] - ends[1]) / np.linalg.norm(ends[1] - ends[2])
+    assert order - 0.1 <= np.log2(ratio) <= order + 0.6
+
+
+def test_constraints_hold_to_round_off_under_step_control():
+    fab = jersey(2, 2, hold_top=True)
+    model = FullModel(SELF, fab, Material())
+    control = StepControl(1e-4, adaptive=True, rtol=1e-3, atol=1e-6)
+    integ = GeneralizedAlpha(model, 1e-4, control)
+    x, v, n = integrate(integ, model, 0.02)
+    r, rv = model.C.createVecLeft(), model.C.createVecLeft()
+    model.C.mult(x, r)
+    r.axpy(-1.0, model.d)
+    model.C.mult(v, rv)
+    assert n > 5 and r.norm(PETSc.NormType.INFINITY) < 1e-15
+    assert rv.norm(PETSc.NormType.INFINITY) < 1e-12
+    assert np.abs(x.getArray() - fab.X.ravel()).max() > 1e-5      # it moved
+
+
+def test_error_control_lands_on_stops_and_tightens_with_tolerance():
+    model = pendulum()
+    ref = gather(SELF, integrate(GeneralizedAlpha(model, 1e-5), model, 0.05)[0])
+    errors, steps = [], []
+    for rtol in (1e-2, 1e-4):
+        control = StepControl(1e-4, adaptive=True, rtol=rtol, atol=rtol * 1e-3)
+        integ = GeneralizedAlpha(model, 1e-4, control)
+        x, _, n = integrate(integ, model, 0.05, t_stops=(0.0123,))
+        errors.append(np.abs(gather(SELF, x) - ref).max())
+        steps.append(n)
+    assert errors[1] < 0.25 * errors[0] and steps[1] > steps[0]
+
+
+@pytest.mark.parametrize("cls", [GeneralizedAlpha, BDF2, BackwardEuler])
+def test_state_continues_bit_exactly(cls):
+    model = pendulum()
+
+    def make():
+        return cls(model, 1e-4, StepControl(1e-4, adaptive=True, rtol=1e-3, atol=1e-6))
+
+    whole = make()
+    x, v, _ = integrate(whole, model, 0.01, t_stops=(0.005,))
+    first = make()
+    x1, v1, _ = integrate(first, model, 0.005)
+    saved = {k: np.array(a, copy=True) for k, a in first.state().items()}
+    second = make()
+    second.set_state(saved)
+    t = 0.005
+    while t < 0.01 - 1e-12:
+        st = second.step(t, x1, v1, 0.01)
+        t = 0.01 if abs(t + st["dt"] - 0.01) < 1e-12 else t + st["dt"]
+    # equal up to the last bits of a fresh factorisation
+    assert np.allclose(x1.getArray(), x.getArray(), rtol=0, atol=1e-15)
+    assert np.allclose(v1.getArray(), v.getArray(), rtol=0, atol=1e-13)
+
+
+def test_mass_damping_dissipates_energy():
+    model = pendulum(damping=20.0)
+    integ = GeneralizedAlpha(model, 1e-3, rho_inf=1.0)
+    x, v = model.rest_state(), model.rest_state()
+    v.zeroEntries()
+    Mv = v.duplicate()
+
+    def energy():
+        model.M.mult(v, Mv)
+        return 0.5 * v.dot(Mv) + model.elastic_energy(x) - model.Qg.dot(x)
+
+    E = [energy()]
+    for n in range(100):
+        integ.step(n * 1e-3, x, v)
+        E.append(energy())
+    assert np.all(np.diff(E) < 1e-12 * abs(E[0]))
+    assert E[-1] < E[0] - 1e-6
+
+
+def test_petsc_error_in_newton_becomes_simulation_error():
+    model = pendulum()
+    opts = PETSc.Options()
+    opts["full_ksp_type"] = "cg"
+    opts["full_pc_type"] = "none"
+    opts["full_ksp_max_it"] = 1
+    try:
+        integ = BackwardEuler(model, 1e-3)
+        integ.max_halvings = 1
+        with pytest.raises(SimulationError, match=r"full_ Newton solver failed with "
+                                                  r"PETSc error \d+"):
+            integrate(integ, model, 1e-3)
+    finally:
+        for k in ("full_ksp_type", "full_pc_type", "full_ksp_max_it"):
+            opts.delValue(k)
+
+
+def test_position_history_estimate_is_exact_for_a_cubic():
+    """For ε = t³ the extrapolation error is Π ε⃛/3! and e = c h³ ε⃛."""
+    hist = PositionHistory(2, 0.1)
+    times = [0.0, 0.3, 0.5, 0.9]
+    for t0, t1 in zip(times, times[1:]):
+        if t0 == 0.0:
+            hist.start(np.array([t0**3]))
+        hist.push(np.array([t1**3]), t1 - t0)
+    h = 0.25
+    exact_next = (0.9 + h) ** 3
+    e = np.zeros(1)
+    # a method with local error c h³ ε⃛ = 0.1 h³ · 6 lands here:
+    assert hist.estimate(np.array([exact_next + 0.6 * h**3]), h, e)
+    assert e[0] == pytest.approx(0.6 * h**3, rel=1e-12)
