@@ -87,7 +87,6 @@ def plot(rec):
             h = np.array([1e3 * split[part] for _, split in bars])
             ax.bar([label for label, _ in bars], h, bottom=bottom, label=part)
             bottom += h
-        ax.set_yscale("log")
         ax.set_ylabel("wall time a Newton iteration [ms]")
         ax.tick_params(axis="x", labelsize=7)
         ax.set_title(f"{rows}x{cols}")

@@ -26,6 +26,10 @@ from libc.string cimport memcpy, memset
 
 from cython.view cimport array as cvarray
 
+# Raised whenever a kernel's arguments change: knitfem.kernels refuses an
+# extension built from an older source (run make setup).
+VERSION = 3
+
 
 cdef inline void cross(const double *a, const double *b, double *c) nogil:
     c[0] = a[1] * b[2] - a[2] * b[1]

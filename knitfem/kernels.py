@@ -22,17 +22,22 @@ from .options import KnitError
 __all__ = ["KINDS", "yarn_kernels", "compiled_module"]
 
 KINDS = ("compiled", "numpy")
+VERSION = 3                 # of knitfem/_compiled.pyx, which this module calls
 
 
 def compiled_module():
     """The compiled extension ``knitfem._compiled``, or a KnitError saying how
-    to build it."""
+    to build it (not built, or built from an older source)."""
     try:
         from . import _compiled
     except ImportError as err:
         raise KnitError(f"the compiled kernels are not built ({err}): run `make "
                         "setup` (or `pip install -e .`), or use -knit_kernels "
                         "numpy") from None
+    if getattr(_compiled, "VERSION", None) != VERSION:
+        raise KnitError("the compiled kernels were built from an older "
+                        "knitfem/_compiled.pyx: run `make setup` (or `pip install "
+                        "-e .`), or use -knit_kernels numpy")
     return _compiled
 
 
