@@ -206,6 +206,7 @@ def run(comm):
     except ValueError as err:
         raise KnitError(str(err)) from None
     system = build_system(comm, opts, fabric, material)
+    adapt = adaptation_from_options(opts, system)
     opts.printHelp("knitfem run")
     PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
                     f"{system.M.getSize()[0]} coordinates + "
@@ -214,7 +215,6 @@ def run(comm):
         return run_static(comm, system, scene, out, load_steps, StaticSolver)
     with PETSc.Log.Stage("Solver set-up"):
         integrator = INTEGRATORS[method](system, dt)
-        adapt = adaptation_from_options(opts, system)
     sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
                      snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
                      view=VIEWS[scene], adapt=adapt)
