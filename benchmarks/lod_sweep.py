@@ -225,7 +225,12 @@ def split_error(P, Pref, near, radius):
                 max_over_radius=float(np.sqrt(d2.max())) / radius)
 
 
-def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name):
+PULLED_MODELS = {"reduced": dict(knit_model="reduced"),
+                 "adaptive": dict(knit_model="mixed", knit_adapt="")}
+
+
+def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name,
+                 models=tuple(PULLED_MODELS)):
     """Full (or its reference ``ref_dir``), reduced, and adaptive mixed on the
     pulled swatch; errors near the pull and elsewhere."""
     from knitfem.adapt import draw_history
@@ -240,8 +245,8 @@ def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name):
         full, Pref, _ = pulled_case(comm, dict(base, knit_model="full"), t_end)
     out = dict(rows=rows, cols=cols, full=full, models=[])
     X = jersey_fabric(Jersey(rows, cols)).X
-    for label, extra in (("reduced", dict(knit_model="reduced")),
-                         ("adaptive", dict(knit_model="mixed", knit_adapt=""))):
+    for label in models:
+        extra = PULLED_MODELS[label]
         PETSc.Sys.Print(f"pulled {rows}x{cols} {label} ...")
         r, P, adapt = pulled_case(comm, dict(base, **extra), t_end)
         r["label"] = label
@@ -320,6 +325,12 @@ def main():
     radius_near = opts.getReal("near", 2.0, "pulled: near the pull means within "
                                "this many stitch widths of the pulled loop head",
                                positive=True)
+    raw = opts.getString("models", ",".join(PULLED_MODELS), "pulled: models to "
+                         "run against the full one")
+    models = [m for m in raw.split(",") if m]
+    if not models or any(m not in PULLED_MODELS for m in models):
+        raise KnitError(f"-bench_models {raw!r}: expected a list of "
+                        f"{', '.join(PULLED_MODELS)}")
     opts.printHelp(f"benchmarks.{STUDY} (and the -knit_ options of knitfem run)")
     name = STUDY + (f"_{tag}" if tag else "")
     show = pulled_report if scene == "pulled" else report
@@ -328,7 +339,7 @@ def main():
     if scene == "pulled":
         if not PETSc.Options().hasName("help"):
             rec = record(comm, STUDY, name=name, t_end=t_end, scene=scene, sizes=[
-                pulled_study(comm, r, c, t_end, ref_dir, radius_near, name)
+                pulled_study(comm, r, c, t_end, ref_dir, radius_near, name, models)
                 for r, c in sizes])
             write_json(comm, name, rec)
             show(comm, rec)

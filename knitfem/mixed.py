@@ -229,10 +229,10 @@ class MixedModel:
 
     def _constraints(self):
         """C Γ_mix: world constraints and the contacts with a full side."""
-        allc, sp_ = cons.build(self.fabric), self.space
+        allc, space = cons.build(self.fabric), self.space
         nent = np.diff(allc.indptr)
         row = np.repeat(np.arange(allc.count), nent)
-        w = sp_.full[allc.indices] * np.abs(allc.values)
+        w = space.full[allc.indices] * np.abs(allc.values)
         frac = np.zeros((allc.count, 2))
         side = ((np.arange(len(row)) - allc.indptr[row]) >= 4).astype(int)  # a | b
         np.add.at(frac, (row, side), w)
@@ -248,16 +248,16 @@ class MixedModel:
         sel = np.flatnonzero(mine)
         ent = np.flatnonzero(np.repeat(mine, nent))
         local_row = np.repeat(np.arange(len(sel)), nent[sel])
-        indptr, indices, values = sp_.csr(local_row, allc.indices[ent],
+        indptr, indices, values = space.csr(local_row, allc.indices[ent],
                                           allc.values[ent], len(sel))
         rhs = allc.rhs[sel]
         # world rows touching no full point: independent rows in α, rank 0
         wsel = np.flatnonzero(pure)
         ent = np.flatnonzero(np.repeat(pure, nent))
-        wi, wj, wv = sp_.csr(np.repeat(np.arange(len(wsel)), nent[wsel]),
+        wi, wj, wv = space.csr(np.repeat(np.arange(len(wsel)), nent[wsel]),
                              allc.indices[ent], allc.values[ent], len(wsel))
-        dense = sp.csr_matrix((wv, wj, wi), shape=(len(wsel), max(sp_.ncol, 1)))
-        acols = sp_.volcol[sp_.alpha]
+        dense = sp.csr_matrix((wv, wj, wi), shape=(len(wsel), max(space.ncol, 1)))
+        acols = space.volcol[space.alpha]
         c_w, d_w = independent_rows(dense[:, acols].toarray(), allc.rhs[wsel])
         self.world_rank, self.world_rows = len(c_w), len(wsel)
         self.contacts_kept = int((keep & contact).sum())
@@ -271,7 +271,7 @@ class MixedModel:
             rhs = np.concatenate([rhs, d_w])
         k = len(indptr) - 1
         K = comm.tompi4py().allreduce(k)
-        n, N = sp_.ncol_local, sp_.ncol
+        n, N = space.ncol_local, space.ncol
         csr = (indptr, indices, values)
         self.c = create_aij(comm, (k, K), (n, N), csr)
         self.C = create_aij(comm, (3 * k, 3 * K), (3 * n, 3 * N),
