@@ -150,6 +150,8 @@ class Simulation:
                     f[f"integrator/{k}"] = np.concatenate(a) if isinstance(a, list) \
                         else a
                 f["stats"] = [self.stats[k] for k in ("newton", "ksp", "rejected")]
+                if self.initial_lowest is not None:
+                    f.attrs["initial_lowest"] = self.initial_lowest
                 f.attrs.update(t=self.t, step=self.step_count, kind=self.system.kind,
                                scene=self.scene, dt=self.integrator.dt,
                                options=json.dumps(PETSc.Options().getAll()))
@@ -167,6 +169,7 @@ class Simulation:
                 t, step, kind = f.attrs["t"], int(f.attrs["step"]), f.attrs["kind"]
                 saved = {k: a[...] for k, a in f.get("integrator", {}).items()}
                 stats = f["stats"][...] if "stats" in f else None
+                lowest = f.attrs.get("initial_lowest")
         except (OSError, KeyError) as err:
             raise KnitError(f"-knit_restart {path}: not a knitfem checkpoint "
                             f"({err})") from None
@@ -179,6 +182,8 @@ class Simulation:
         self.t, self.step_count = float(t), step
         if saved:
             self.integrator.set_state(self.local_parts(saved))
+        if lowest is not None:
+            self.initial_lowest = float(lowest)
         if stats is not None:
             self.stats.update(zip(("newton", "ksp", "rejected"), map(int, stats)))
         self.snapshots = [s for s in self.snapshots if s > self.t + 1e-9]
