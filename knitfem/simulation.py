@@ -206,8 +206,8 @@ class Simulation:
             PETSc.Sys.Print(
                 f"step {self.step_count:6d}  t {self.t:8.4f}  dt {dt:.2e}  newton "
                 f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  rejected "
-                f"{self.stats['rejected']:3d}  kinetic {m['kinetic_energy']:.4e}  elastic "
-                f"{m['elastic_energy']:.4e}  |C x - d| "
+                f"{self.stats['rejected']:3d}  kinetic {m['kinetic_energy']:.4e}  "
+                f"elastic {m['elastic_energy']:.4e}  |C x - d| "
                 f"{m['max_constraint_violation']:.2e}", comm=self.comm)
 
     # -- the loop ------------------------------------------------------------
