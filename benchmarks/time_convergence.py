@@ -138,7 +138,7 @@ def study(comm, case, steps, rtols, ref_dt, energy_t):
     return rec
 
 
-def plot(results, name):
+def plot(results, stem):
     import matplotlib.pyplot as plt
 
     cases = list(results)
@@ -168,7 +168,7 @@ def plot(results, name):
                title=f"{case} model: convergence in time")
         wp.set(xlabel="wall time [s]", ylabel="centroid error / largest displacement",
                title=f"{case} model: work-precision")
-    save_figure(fig, name)
+    save_figure(fig, stem)
     fig, axes = plt.subplots(1, len(cases), figsize=(6 * len(cases), 4), squeeze=False)
     for j, case in enumerate(cases):
         ax = axes[0, j]
@@ -182,7 +182,7 @@ def plot(results, name):
                title=f"{case} model, no damping, default stepping")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    save_figure(fig, name.replace("convergence", "energy"))
+    save_figure(fig, stem.replace("convergence", "energy"))
 
 
 def main():
