@@ -569,7 +569,8 @@ class BDF2(NewtonStepper):
     modes (the yarns' axial vibration) are damped out in a step, where the
     generalized-α method keeps ρ∞ of them and its nonlinear energy balance
     can feed them. The first step is backward Euler. Local error
-    −(2/9) h³ ε⃛ (``PositionHistory``); predictor ε̇_n + h (ε̇_n − ε̇_{n−1})/h_{n−1}.
+    −(2/9) h³ ε⃛ (``PositionHistory``); predictor
+    ε̇_n + h (ε̇_n − ε̇_{n−1})/h_{n−1}.
     """
 
     name = "bdf2"
@@ -590,7 +591,8 @@ class BDF2(NewtonStepper):
         om = h / self.h1
         c0, c1 = (1 + om) ** 2 / (1 + 2 * om), om ** 2 / (1 + 2 * om)
         self.sigma = self.kappa = h * (1 + om) / (1 + 2 * om)
-        for hat, y, y1 in ((self.vhat, self.vn, self.v1), (self.xhat, self.xn, self.x1)):
+        for hat, y, y1 in ((self.vhat, self.vn, self.v1),
+                           (self.xhat, self.xn, self.x1)):
             y.copy(hat)
             hat.scale(c0)
             hat.axpy(-c1, y1)
