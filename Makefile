@@ -6,7 +6,8 @@ VENV    := .venv
 VPY     := $(VENV)/bin/python
 APT     := python3-petsc4py python3-mpi4py python3-h5py python3-meshio \
            python3-scipy python3-matplotlib python3-pytest python3-venv \
-           python3-setuptools python3-pip openmpi-bin
+           python3-setuptools python3-pip openmpi-bin cython3 python3-dev gcc \
+           libopenblas-dev
 export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
@@ -30,7 +31,8 @@ apt:
 
 # The venv sees Debian's numpy/petsc4py; a .pth file points at Debian's
 # real-scalar petsc4py when /usr/lib/petsc (from the -dev package) is absent.
-$(VENV)/.installed: setup.py
+# pip install -e . also compiles the yarn kernels (Cython) in place.
+$(VENV)/.installed: setup.py knitfem/_compiled.pyx
 	test -x $(VPY) || $(PYTHON) -m venv --system-site-packages $(VENV)
 	site=$$($(VPY) -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"); \
 	petsc=$$(ls -d /usr/lib/petscdir/petsc3.*/x86_64-linux-gnu-real/lib/python3/dist-packages | tail -n 1); \
@@ -39,7 +41,8 @@ $(VENV)/.installed: setup.py
 	touch $@
 
 demo: setup
-	$(VENV)/bin/knitfem run -knit_scene hanging -knit_rows 7 -knit_cols 7 -o $(OUT)
+	$(VENV)/bin/knitfem run -knit_scene hanging -knit_rows 7 -knit_cols 7 \
+	  -knit_snapshots 0,0.4,1,2,3 -knit_animation hanging.gif -o $(OUT)
 
 test: setup test-serial test-parallel
 
@@ -47,7 +50,7 @@ test-serial:
 	timeout 900 $(PYTEST) tests
 
 test-parallel:
-	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py
 
 clean:
-	rm -rf $(VENV) out *.egg-info
+	rm -rf $(VENV) out *.egg-info build knitfem/_compiled.c knitfem/*.so

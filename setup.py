@@ -3,9 +3,17 @@
 Dependencies come from Debian (petsc4py, mpi4py, numpy, scipy, h5py, meshio,
 matplotlib); they are not listed in install_requires so that pip never
 replaces Debian's numpy, which petsc4py is built against.
+
+The compiled yarn kernels (``knitfem/_compiled.pyx``) are built here by
+Debian's Cython (``cython3``) and gcc: ``pip install -e .`` (``make setup``)
+compiles them in place.
 """
 
-from setuptools import setup
+from Cython.Build import cythonize
+from setuptools import Extension, setup
+
+KERNELS = Extension("knitfem._compiled", ["knitfem/_compiled.pyx"],
+                    extra_compile_args=["-O3"], libraries=["blas"])
 
 setup(
     name="knitfem",
@@ -15,5 +23,6 @@ setup(
     packages=["knitfem", "solvers", "benchmarks"],
     package_data={"solvers": ["*.rc"]},
     python_requires=">=3.9",
+    ext_modules=cythonize([KERNELS], language_level=3),
     entry_points={"console_scripts": ["knitfem = knitfem.cli:main"]},
 )

@@ -11,8 +11,10 @@ options and their defaults apply; a study forces some of them, such as
 and returns what was measured: wall times, Newton/KSP iterations, problem
 sizes, the run's summary, peak memory, and the time, count and flops of the
 PETSc events of each stage. ``record`` adds the machine, the PETSc version
-and the command-line options; ``write_json`` and ``save_figure`` write
-``benchmarks/results/`` on rank 0.
+and the command-line options; ``write_json`` and ``save_figure`` write, on
+rank 0, to ``-bench_results DIR``: by default the scratch folder
+``out/benchmarks/``, so a quick run never overwrites the committed results
+(``-bench_results benchmarks/results`` writes those).
 
 petsc4py 3.18 reads event figures with ``Log.Event(name).getPerfInfo(stage_id)``
 (process-local, cumulative); it has no stage timer and no
@@ -53,7 +55,9 @@ __all__ = ["PETSc", "KnitError", "KnitOptions", "RESULTS", "case", "record", "ru
            "write_json", "read_json", "save_figure", "step_split", "split_table",
            "wall", "stacked_bars", "markdown_table", "sizes_option", "rms_distance"]
 
-RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+RESULTS = os.path.abspath(KnitOptions("bench_").getString(
+    "results", os.path.join("out", "benchmarks"), "folder of the JSON results and "
+    "figures (the committed ones: benchmarks/results)"))
 COMMAND_LINE = PETSc.Options().getAll()
 STAGES = ("Main Stage", "Model set-up", "Solver set-up", "Time stepping")
 FACTOR = ("MatLUFactorSym", "MatILUFactorSym", "MatLUFactorNum", "MatCholFctrSym",
@@ -274,7 +278,7 @@ def sizes_option(opts, default, text="jersey sizes ROWSxCOLS,..."):
 
 
 def write_json(comm, name, rec):
-    """benchmarks/results/<name>.json, written by rank 0 (collective)."""
+    """RESULTS/<name>.json, written by rank 0 (collective)."""
     if comm.rank == 0:
         os.makedirs(RESULTS, exist_ok=True)
         path = os.path.join(RESULTS, name + ".json")
@@ -290,7 +294,7 @@ def read_json(name):
 
 
 def save_figure(fig, name):
-    """benchmarks/results/figures/<name>.png (call on rank 0)."""
+    """RESULTS/figures/<name>.png (call on rank 0)."""
     import matplotlib.pyplot as plt
 
     path = os.path.join(RESULTS, "figures", name + ".png")

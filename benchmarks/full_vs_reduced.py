@@ -6,10 +6,15 @@
 The hanging scene of ``knitfem run`` (backward Euler, dt = 1e-2, start
 horizontal) for each size, with the full model and the reduced model of
 -bench_lod (5,5). Per model: wall time, the time of a step split by PETSc
-events, Newton iterations, unknowns, sag, centroid and lowest point; per
-size: the relative sag difference and the centroid distance of the reduced
-result from the full one. Writes results/full_vs_reduced[_TAG].json and
-results/figures/full_vs_reduced.png (time per step, stacked by part).
+events, the time of a Newton iteration by part (forces, tangent, Γᵀ K Γ,
+factorisation and solves, the rest), Newton iterations, unknowns, sag,
+centroid and lowest point; per size: the relative sag difference and the
+centroid distance of the reduced result from the full one. Writes
+results/full_vs_reduced[_TAG].json and results/figures/full_vs_reduced.png
+(time a Newton iteration, stacked by part, before and after).
+
+"Before" is the numpy-kernel code of main before the compiled kernels (its
+runs are kept in the JSON under ``before``, carried from file to file).
 
 Things to try: -bench_t_end 0.2 for a quick check; -knit_EI 2e-7.
 """
@@ -23,6 +28,34 @@ from .common import (KnitOptions, PETSc, case, markdown_table, read_json, record
                      wall, write_json)
 
 STUDY = "full_vs_reduced"
+PARTS = {"forces": ("forces", "residual other"), "tangent": ("tangent",),
+         "Γᵀ K Γ": ("PtAP",), "factor/solve": ("PC set-up (factorisation)",
+                                               "triangular solves"),
+         "other": ("Jacobian other", "Krylov, line search", "driver")}
+
+
+def iteration_split(run):
+    """Seconds a Newton iteration by part (``PARTS``): the step split times
+    the steps over the Newton iterations. "forces" holds every residual
+    evaluation of the iteration (line search included)."""
+    per = run["per_step_s"]
+    scale = run["steps"] / max(run["newton"], 1)
+    return {part: scale * sum(per[k] for k in keys) for part, keys in PARTS.items()}
+
+
+def before_runs(name):
+    """The "before" runs of the existing result file: its own ``before``, or,
+    for a file written before the compiled kernels, its runs."""
+    try:
+        old = read_json(name)
+    except OSError:
+        return []
+    if "before" in old:
+        return old["before"]
+    return [dict(rows=r["rows"], cols=r["cols"], model=r["model"],
+                 newton=r["newton"], steps=r["steps"], wall_s=r["wall_s"],
+                 per_step_s=r["per_step_s"], summary=dict(sag=r["summary"]["sag"]))
+            for r in old["runs"] if "per_step_s" in r]
 
 
 def compare(full, reduced):
@@ -36,21 +69,38 @@ def compare(full, reduced):
 
 
 def plot(rec):
-    """Time a step stacked by part, one panel a size (rank 0)."""
+    """Time a Newton iteration stacked by part, before and after, one panel
+    a size (rank 0)."""
     import matplotlib.pyplot as plt
 
     runs = [r for r in rec["runs"] if "per_step_s" in r]
     sizes = sorted({(r["rows"], r["cols"]) for r in runs})
-    fig, axes = plt.subplots(1, len(sizes), figsize=(2.2 + 2.4 * len(sizes), 4.2),
+    fig, axes = plt.subplots(1, len(sizes), figsize=(2.2 + 3.2 * len(sizes), 4.2),
                              squeeze=False, layout="constrained")
     for ax, (rows, cols) in zip(axes[0], sizes):
-        mine = [r for r in runs if (r["rows"], r["cols"]) == (rows, cols)]
-        stacked_bars(ax, [r["model"] for r in mine], [r["per_step_s"] for r in mine])
+        bars = [(f"{r['model']}\n{when}", iteration_split(r))
+                for r0 in runs if (r0["rows"], r0["cols"]) == (rows, cols)
+                for when, r in (("before", match(rec.get("before", []), r0)), ("after", r0))
+                if r is not None]
+        bottom = np.zeros(len(bars))
+        for part in PARTS:
+            h = np.array([1e3 * split[part] for _, split in bars])
+            ax.bar([label for label, _ in bars], h, bottom=bottom, label=part)
+            bottom += h
+        ax.set_yscale("log")
+        ax.set_ylabel("wall time a Newton iteration [ms]")
+        ax.tick_params(axis="x", labelsize=7)
         ax.set_title(f"{rows}x{cols}")
     axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
     fig.suptitle(f"hanging jersey, backward Euler dt = {runs[0]['summary']['dt']:g}, "
                  f"t_end = {rec['t_end']:g} s, {rec['ranks']} rank(s)", fontsize=10)
     save_figure(fig, rec["name"])
+
+
+def match(runs, r):
+    """The run of ``runs`` with r's size and model, or None."""
+    return next((b for b in runs if (b["rows"], b["cols"], b["model"])
+                 == (r["rows"], r["cols"], r["model"])), None)
 
 
 def report(comm, rec):
@@ -70,6 +120,18 @@ def report(comm, rec):
     ok = [r for r in rec["runs"] if "per_step_s" in r]
     PETSc.Sys.Print(split_table([f"{r['rows']}x{r['cols']} {r['model']}" for r in ok],
                                 [r["per_step_s"] for r in ok]))
+    lines = []
+    for r in ok:
+        for when, run in (("before", match(rec.get("before", []), r)), ("after", r)):
+            if run is not None:
+                split = iteration_split(run)
+                lines.append([f"{r['rows']}x{r['cols']}", r["model"], when,
+                              run["newton"], run["wall_s"]["run"],
+                              *(1e3 * split[p] for p in PARTS),
+                              1e3 * sum(split.values())])
+    PETSc.Sys.Print(markdown_table(
+        ["size", "model", "code", "Newton its", "run [s]",
+         *(f"{p} [ms/it]" for p in PARTS), "total [ms/it]"], lines))
     PETSc.Sys.Print(markdown_table(
         ["size", "relative sag difference", "centroid distance [mm]"],
         [[f"{d['rows']}x{d['cols']}", d["sag_relative_difference"],
@@ -112,7 +174,7 @@ def main():
         if d:
             diffs.append(dict(rows=rows, cols=cols, **d))
     rec = record(comm, STUDY, name=name, t_end=t_end, lod=list(lod), runs=runs,
-                 differences=diffs)
+                 differences=diffs, before=before_runs(name))
     write_json(comm, name, rec)
     report(comm, rec)
 

@@ -14,11 +14,13 @@ results/lod_sweep[_TAG].json and results/figures/lod_sweep[_TAG].png (error
 and time against unknowns).
 """
 
+import os
 import sys
 
 import numpy as np
 
-from .common import (KnitError, KnitOptions, PETSc, case, markdown_table, read_json,
+from .common import (RESULTS, KnitError, KnitOptions, PETSc, case, forced,
+                     log_since, log_snapshot, markdown_table, memory, read_json,
                      record, rms_distance, run, save_figure, sizes_option, wall,
                      write_json)
 
@@ -129,19 +131,208 @@ def report(comm, rec):
         plot(rec)
 
 
+# -- mixed and adaptive rows: the pulled swatch ---------------------------------
+def pulled_case(comm, options, t_end):
+    """The pulled scene with the -knit_ ``options`` forced, as ``knitfem run``
+    builds it (with the indicator and -knit_adapt for the mixed model).
+    Returns the record, the control points at t_end (rank 0) and the
+    adaptation (or None). Collective."""
+    import time
+
+    from knitfem.adapt import adaptation_from_options
+    from knitfem.commands import (build_system, jersey_from_options,
+                                  material_from_options, pull_from_options)
+    from knitfem.scenes import make_fabric
+    from knitfem.simulation import Simulation
+    from solvers.integrators import INTEGRATORS, SimulationError
+
+    before, rec, P, adapt = log_snapshot(), dict(forced=dict(options)), None, None
+    with forced(options):
+        opts = KnitOptions()
+        try:
+            comm.barrier()
+            start = time.perf_counter()
+            jersey = jersey_from_options(opts)
+            fabric = make_fabric("pulled", jersey, pull=pull_from_options(opts, jersey))
+            system = build_system(comm, opts, fabric, material_from_options(opts))
+            dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
+            method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS),
+                                    "integrator")
+            with PETSc.Log.Stage("Solver set-up"):
+                integrator = INTEGRATORS[method](system, dt)
+                adapt = adaptation_from_options(opts, system)
+            n, k = system.M.getSize()[0], system.C.getSize()[0]
+            rec.update(coordinates=n, constraints=k, unknowns=n + k,
+                       radius=fabric.radius,
+                       pull=[int(fabric.loads[0][0]), float(fabric.loads[1][0])])
+            verbose = KnitOptions("bench_").getBool("verbose", False, "progress")
+            sim = Simulation(system, integrator, out=None, verbose=verbose,
+                             adapt=adapt)
+            if adapt is not None:
+                adapt(sim)
+            summary = sim.run(t_end)
+            comm.barrier()
+            rec["wall_s"] = dict(run=sim.wall_time, total=time.perf_counter() - start)
+            rec.update(steps=summary["steps"], newton=summary["newton_iterations"],
+                       ksp=summary["ksp_iterations"], summary=summary)
+            if adapt is not None:
+                rec.update(adapt.record())
+                rec["unknowns"] = rec["adapt"]["unknowns_max"]
+            P = sim.geometry()[0]
+        except (SimulationError, PETSc.Error, KnitError) as err:
+            rec["failed"] = str(err).strip().splitlines()[-1]
+            PETSc.Sys.Print(f"  failed: {rec['failed']}")
+    rec.update(memory=memory(comm), log=log_since(before, comm))
+    return rec, P, adapt
+
+
+def reference(comm, path, t_end):
+    """The full model's record and points from a ``knitfem run`` directory."""
+    import json
+    import os
+
+    import h5py
+
+    with open(os.path.join(path, "summary.json")) as f:
+        summary = json.load(f)
+    with h5py.File(os.path.join(path, "checkpoint.h5"), "r") as f:
+        t, x = float(f.attrs["t"]), f["x"][...]
+    if abs(t - t_end) > 1e-9 or summary.get("model") != "full":
+        raise KnitError(f"-bench_reference {path}: holds a {summary.get('model')} "
+                        f"model at t = {t:g} s, not the full model at {t_end:g} s")
+    rec = dict(reference=path, unknowns=summary["unknowns"], steps=summary["steps"],
+               newton=summary["newton_iterations"], summary=summary,
+               wall_s=dict(run=summary["wall_time_s"], total=summary["wall_time_s"]))
+    return rec, x
+
+
+def near_pull(fabric_X, pull_yarn, pull_s, radius_stitches):
+    """Control points within ``radius_stitches`` stitch widths of the pulled
+    loop head at rest: a boolean (nyarn, ncp) mask."""
+    from knitfem import bspline
+    from knitfem.pattern import SEGMENTS_PER_STITCH
+
+    head = bspline.curve_points(fabric_X[pull_yarn], np.array([pull_s]))[0]
+    width = np.abs(fabric_X[0, SEGMENTS_PER_STITCH + 1, 0] - fabric_X[0, 1, 0])
+    return np.linalg.norm(fabric_X - head, axis=-1) <= radius_stitches * width
+
+
+def split_error(P, Pref, near, radius):
+    d2 = np.sum((P - Pref) ** 2, axis=-1)
+    return dict(near_rms_over_radius=float(np.sqrt(d2[near].mean())) / radius,
+                elsewhere_rms_over_radius=float(np.sqrt(d2[~near].mean())) / radius,
+                rms_over_radius=rms_distance(P, Pref) / radius,
+                max_over_radius=float(np.sqrt(d2.max())) / radius)
+
+
+def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name):
+    """Full (or its reference ``ref_dir``), reduced, and adaptive mixed on the
+    pulled swatch; errors near the pull and elsewhere."""
+    from knitfem.adapt import draw_history
+    from knitfem.pattern import Jersey, jersey_fabric
+
+    base = dict(knit_rows=rows, knit_cols=cols)
+    PETSc.Sys.Print(f"pulled {rows}x{cols} full ...")
+    if ref_dir:
+        full, x = reference(comm, ref_dir, t_end)
+        Pref = x.reshape(rows, -1, 3)
+    else:
+        full, Pref, _ = pulled_case(comm, dict(base, knit_model="full"), t_end)
+    out = dict(rows=rows, cols=cols, full=full, models=[])
+    X = jersey_fabric(Jersey(rows, cols)).X
+    for label, extra in (("reduced", dict(knit_model="reduced")),
+                         ("adaptive", dict(knit_model="mixed", knit_adapt=""))):
+        PETSc.Sys.Print(f"pulled {rows}x{cols} {label} ...")
+        r, P, adapt = pulled_case(comm, dict(base, **extra), t_end)
+        r["label"] = label
+        if "failed" not in r and "failed" not in full and comm.rank == 0:
+            near = near_pull(X, *r["pull"], radius_near)
+            r["error"] = split_error(P, Pref, near, r["radius"])
+            r["near_points"] = int(near.sum())
+            r["unknowns_over_full"] = r["unknowns"] / full["unknowns"]
+            r["wall_full_over_this"] = full["wall_s"]["run"] / r["wall_s"]["run"]
+        r = comm.tompi4py().bcast(r if comm.rank == 0 else None)
+        if adapt is not None and comm.rank == 0:
+            draw_history(os.path.join(RESULTS, "figures", f"{name}_indicator.png"),
+                         adapt.full.fabric, adapt.weights, adapt.history,
+                         adapt.refine, adapt.coarsen)
+        out["models"].append(r)
+    return out
+
+
+def pulled_report(comm, rec):
+    """Table of the pulled rows; bars of error and wall time (rank 0)."""
+    rows = []
+    for s in rec["sizes"]:
+        f = s["full"]
+        rows.append([f"{s['rows']}x{s['cols']}", "full", f["unknowns"], f["newton"],
+                     f["wall_s"]["run"], "-", "-", "-", "-"])
+        for r in s["models"]:
+            e = r.get("error", {})
+            rows.append([f"{s['rows']}x{s['cols']}", r["label"], r.get("unknowns", "-"),
+                         r.get("newton", "-"), wall(r),
+                         e.get("near_rms_over_radius", "-"),
+                         e.get("elsewhere_rms_over_radius", "-"),
+                         r.get("unknowns_over_full", "-"),
+                         r.get("wall_full_over_this", "-")])
+    PETSc.Sys.Print(markdown_table(
+        ["size", "model", "unknowns (max)", "Newton its", "wall [s]",
+         "RMS dist / r near pull", "RMS dist / r elsewhere", "unknowns / full",
+         "full wall / this"], rows))
+    if comm.rank:
+        return
+    import matplotlib.pyplot as plt
+
+    s = rec["sizes"][0]
+    ok = [r for r in s["models"] if "error" in r]
+    labels = [r["label"] for r in ok]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.6), layout="constrained")
+    x = np.arange(len(ok))
+    ax1.bar(x - 0.2, [r["error"]["near_rms_over_radius"] for r in ok], 0.4,
+            label="near the pull")
+    ax1.bar(x + 0.2, [r["error"]["elsewhere_rms_over_radius"] for r in ok], 0.4,
+            label="elsewhere")
+    ax1.set_xticks(x, labels)
+    ax1.set_ylabel("RMS distance to the full model / yarn radius")
+    ax1.legend(fontsize=7)
+    ax2.bar(["full"] + labels, [s["full"]["wall_s"]["run"]]
+            + [r["wall_s"]["run"] for r in ok])
+    ax2.set_ylabel("wall time of the run [s]")
+    fig.suptitle(f"pulled {s['rows']}x{s['cols']} swatch, t = {rec['t_end']:g} s",
+                 fontsize=10)
+    save_figure(fig, rec["name"])
+
+
 def main():
     comm = PETSc.COMM_WORLD
     opts = KnitOptions("bench_")
+    scene = opts.getChoice("scene", "hanging", ("hanging", "pulled"),
+                           "hanging: reduced models against the full one; pulled: "
+                           "the reduced and adaptive mixed models")
     sizes = sizes_option(opts, "7x7")
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     tag = opts.getString("tag", "", "suffix of the result and figure names")
     only_report = opts.getBool("plot", False, "only print the table and draw the "
                                "figure of the JSON file")
     lods = lods_option(opts)
+    ref_dir = opts.getString("reference", "", "pulled: knitfem run output directory "
+                             "of the full model (checkpoint.h5 at t_end)")
+    radius_near = opts.getReal("near", 2.0, "pulled: near the pull means within "
+                               "this many stitch widths of the pulled loop head",
+                               positive=True)
     opts.printHelp(f"benchmarks.{STUDY} (and the -knit_ options of knitfem run)")
     name = STUDY + (f"_{tag}" if tag else "")
+    show = pulled_report if scene == "pulled" else report
     if only_report:
-        return report(comm, read_json(name))
+        return show(comm, read_json(name))
+    if scene == "pulled":
+        if not PETSc.Options().hasName("help"):
+            rec = record(comm, STUDY, name=name, t_end=t_end, scene=scene, sizes=[
+                pulled_study(comm, r, c, t_end, ref_dir, radius_near, name)
+                for r, c in sizes])
+            write_json(comm, name, rec)
+            show(comm, rec)
+        return
     if PETSc.Options().hasName("help"):
         return
     rec = record(comm, STUDY, name=name, t_end=t_end,

@@ -1,45 +1,102 @@
 """knitfem command line: ``knitfem <command> [-knit_... options] [PETSc options]``.
 
-Commands
-  dofs      the unknowns table (paper, Figure 9), counted from assembled objects
-  pattern   write a jersey's centrelines (VTU) and a PNG picture
-  run       simulate a scene (full or reduced model), see ``knitfem run -help``
-  deform    impose a deformation on the bounding volume and rebuild the yarns
-
 PETSc reads the command line once, in ``main``, before anything imports
-``petsc4py.PETSc``; a bad value of one of our options ends the program with a
-one-line message and exit status 2.
+``petsc4py.PETSc``. ``-help`` (or ``-h``, ``--help``) is kept from PETSc, so
+that it prints our options only and the command stops before it runs. Every
+failure ends the program with one line on stderr and an exit status: 2 bad
+input (an option's value, an option of ours that no command declares, a
+checkpoint that does not match, an output directory in use or not
+writable), 3 a simulation that failed, 130 and 143 SIGINT and SIGTERM. A
+PETSc option that nothing read gets a warning at the end.
+``KNITFEM_TRACEBACK=1`` shows the traceback of an unexpected error.
 """
 
+import os
 import sys
 
 import petsc4py
 
 COMMANDS = ("dofs", "pattern", "run", "deform")
+HELP = ("-help", "-h", "--help")
+
+USAGE = """\
+usage: knitfem <command> [-knit_... options] [PETSc options]
+
+commands (each one's options: knitfem <command> -help)
+  dofs      the unknowns table (paper, Figure 9), counted from assembled objects
+              knitfem dofs -knit_rows 15 -knit_cols 30 -knit_lod 5,5
+  pattern   write a jersey's centrelines (VTU) and a PNG picture
+              knitfem pattern -knit_rows 7 -knit_cols 7 -o out/pattern
+  run       simulate a scene with the full or reduced model, or its statics
+              knitfem run -knit_scene hanging -knit_model reduced -o out/hanging
+  deform    impose a deformation on the bounding volume and rebuild the yarns
+              knitfem deform -knit_mode torsion -knit_amount 90 -o out/torsion
+
+in parallel: mpirun -n 2 knitfem run -knit_rows 15 -knit_cols 30"""
+
+
+def complain(message):
+    """One line on stderr, from the first rank only."""
+    if os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK", "0")) == "0":
+        print(message, file=sys.stderr, flush=True)
 
 
 def main(argv=None):
     argv = list(sys.argv if argv is None else argv)
     command = argv[1] if len(argv) > 1 and not argv[1].startswith("-") else None
-    petsc4py.init([argv[0]] + argv[2 if command else 1:])
+    rest = argv[2 if command else 1:]
+    wants_help = any(a in HELP for a in rest)
+    from .interrupts import Interrupted, install
+
+    install()
+    try:
+        petsc4py.init([argv[0]] + [a for a in rest if a not in HELP])
+        return _command(command, wants_help)
+    except Interrupted as stop:
+        complain(f"knitfem {command}: {stop} during set-up, before any step")
+        return stop.code
+
+
+def _command(command, wants_help):
     from petsc4py import PETSc
 
-    from .options import KnitError
+    from solvers.integrators import SimulationError
 
+    from .options import OURS, KnitError, KnitOptions, unused_options
+
+    given = set(PETSc.Options().getAll())       # not the defaults we set later
+    if command is None:
+        PETSc.Sys.Print(USAGE)
+        return 0
     if command not in COMMANDS:
-        if PETSc.Options().hasName("help") or command is None:
-            PETSc.Sys.Print(__doc__)
-            return 0 if command is None else 2
-        PETSc.Sys.Print(f"knitfem: error: unknown command {command!r}: use one of "
-                        + ", ".join(COMMANDS))
+        complain(f"knitfem: error: unknown command {command!r}: use one of "
+                 f"{', '.join(COMMANDS)} (knitfem --help shows them)")
         return 2
+    KnitOptions.help = wants_help
+    given = set(PETSc.Options().getAll())        # the user's, before any default
     from . import commands
 
     try:
-        return getattr(commands, command)(PETSc.COMM_WORLD) or 0
+        status = getattr(commands, command)(PETSc.COMM_WORLD) or 0
     except KnitError as err:
-        PETSc.Sys.Print(f"knitfem {command}: error: {err}")
+        complain(f"knitfem {command}: error: {err}")
         return 2
+    except (SimulationError, PETSc.Error, OSError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        complain(f"knitfem {command}: error: {type(err).__name__}: {first}")
+        return 3
+    except Exception as err:
+        if os.environ.get("KNITFEM_TRACEBACK"):
+            raise
+        complain(f"knitfem {command}: internal error: {type(err).__name__}: "
+                 f"{err} (KNITFEM_TRACEBACK=1 shows where)")
+        return 1
+    if status == 0 and not wants_help:
+        left = [k for k in unused_options() if k in given and not k.startswith(OURS)]
+        if left:
+            complain(f"knitfem {command}: warning: PETSc option(s) not used "
+                     f"(misspelt?): {' '.join('-' + k for k in left)}")
+    return status
 
 
 if __name__ == "__main__":

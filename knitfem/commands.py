@@ -20,9 +20,26 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape())
 
 
-def output_dir(default):
-    """The -o DIR option, created on rank 0."""
-    path = PETSc.Options().getString("o", default)
+def pull_from_options(opts, jersey):
+    """(stitch, force) of the pulled scene: -knit_pull_stitch c,r and
+    -knit_pull_force fx,fy,fz [N]."""
+    stitch = opts.getInts("pull_stitch", (jersey.cols // 2, 0),
+                          "pulled scene: stitch (column, course) whose loop head "
+                          "is pulled", 2, 0)
+    raw = opts.getString("pull_force", "0,-0.005,0", "pulled scene: point force "
+                         "fx,fy,fz [N]")
+    try:
+        force = [float(v) for v in raw.split(",")]
+    except ValueError:
+        force = []
+    if len(force) != 3 or not np.all(np.isfinite(force)):
+        raise KnitError(f"-knit_pull_force {raw!r}: expected three numbers "
+                        "fx,fy,fz in newtons")
+    return stitch, force
+
+
+def output_dir(path):
+    """Create the output directory (-o DIR) on rank 0."""
     if PETSc.COMM_WORLD.rank == 0:
         try:
             os.makedirs(path, exist_ok=True)
@@ -35,27 +52,33 @@ def output_dir(default):
 def dofs(comm):
     """Print the unknowns table (Figure 9) counted from the assembled objects."""
     from .model import FullModel, Material
-    from .reduced import embedding_from_options
+    from .reduced import embedding_from_options, volume_options
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts, 15, 30)
     fmt = opts.getChoice("format", "table", ("table", "json"), "output format")
-    fabric = jersey_fabric(jersey)
+    volume_options(opts)
+    if opts.finish("knitfem dofs"):
+        return
+    fabric = jersey_fabric(jersey, hold_top=True)
     emb = embedding_from_options(opts, comm, fabric)
-    opts.printHelp("knitfem dofs")
     full = FullModel(comm, fabric, Material())
+    mpi = comm.tompi4py()
+    contacts, fixed = (mpi.allreduce(int(np.sum(full.constraint_kind == kind)))
+                       for kind in ("contact", "fixed"))
     ncp_yarn = full.layout.ncp_per_yarn
     dof = full.M.getSize()[0]
-    scalar_con = full.C.getSize()[0]
     reduced_dofs = emb.Gamma.getSize()[1]
     rec = dict(rows=jersey.rows, cols=jersey.cols, control_points_per_yarn=ncp_yarn,
                dofs_per_yarn=3 * ncp_yarn, control_points=full.m.getSize()[0],
-               dofs=dof, vector_constraints=full.c.getSize()[0],
-               scalar_constraints=scalar_con, unknowns=dof + scalar_con,
+               dofs=dof, vector_constraints=contacts,
+               scalar_constraints=3 * contacts, unknowns=dof + 3 * contacts,
+               fixed_points_hanging=fixed,
+               unknowns_hanging=full.M.getSize()[0] + full.C.getSize()[0],
                paper_scalar_constraints=3 * 2 * jersey.cols * jersey.rows,
                reduced_control_points=emb.Gamma_scalar.getSize()[1],
                reduced_dofs=reduced_dofs,
-               ratio=(dof + scalar_con) / reduced_dofs)
+               ratio=(dof + 3 * contacts) / reduced_dofs)
     if fmt == "json":
         PETSc.Sys.Print(json.dumps(rec))
         return
@@ -75,6 +98,9 @@ def dofs(comm):
     lines.append(f"(the paper counts 2 nc contacts for every course, "
                  f"{rec['paper_scalar_constraints']} scalar constraints; an open "
                  f"jersey has (r-1)·2·nc interlocks)")
+    lines.append(f"hanging scene (knitfem run): top course held at {fixed} fixed "
+                 f"points, {rec['unknowns']} + {3 * fixed} = "
+                 f"{rec['unknowns_hanging']} unknowns")
     PETSc.Sys.Print("\n".join(lines))
     full.destroy()
 
@@ -85,8 +111,10 @@ def pattern(comm):
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
-    out = output_dir("out/pattern")
-    opts.printHelp("knitfem pattern")
+    out = opts.getOutput("out/pattern")
+    if opts.finish("knitfem pattern"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
@@ -114,33 +142,79 @@ def material_from_options(opts):
                              "mass-proportional damping c_d [1/s]", nonnegative=True))
 
 
+def model_options(opts):
+    """(model, Gauss points, kernels) from -knit_model, -knit_quadrature,
+    -knit_kernels; declares the options read only for some models, too
+    (-knit_lod, -knit_volume; -knit_full_region(s))."""
+    from .kernels import KINDS
+    from .mixed import region_options
+    from .reduced import volume_options
+
+    kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
+                          "mechanical model")
+    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
+                             "compiled loops or the numpy reference")
+    volume_options(opts)
+    region_options(opts)
+    return kind, nq, kernels
+
+
 def build_system(comm, opts, fabric, material):
-    """The full or reduced model of -knit_model, from a fabric."""
+    """The full, reduced or mixed model of -knit_model, from a fabric."""
+    from .mixed import mixed_from_options
     from .model import FullModel
     from .reduced import ReducedModel, embedding_from_options
 
-    kind = opts.getChoice("model", "full", ("full", "reduced"), "mechanical model")
-    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
-        full = FullModel(comm, fabric, material, nq=nq)
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels)
         if kind == "full":
             return full
-        return ReducedModel(full, embedding_from_options(opts, comm, fabric,
-                                                         full.layout))
+        embedding = embedding_from_options(opts, comm, fabric, full.layout)
+        if kind == "mixed":
+            return mixed_from_options(opts, full, embedding)
+        return ReducedModel(full, embedding)
     finally:
         stage.pop()
 
 
-VIEWS = {"hanging": "side", "freefall": "oblique", "catenary": "front",
-         "cantilever": "front"}
+RUN_HELP_FOOTER = """\
+PETSc options reach each solver through its prefix: -full_ and -reduced_ (the
+implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
+-full_explicit_ (symplectic), -static_ (-knit_static: -static_snes_monitor);
+-log_view, -options_file FILE. Example:
+  knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
+
+VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
+         "catenary": "front", "cantilever": "front"}
+
+
+def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod):
+    """The options that define a scene's problem (a checkpoint's fingerprint)."""
+    if scene in ("catenary", "cantilever"):
+        shape = dict(length=length, segments=nseg,
+                     **(dict(span=span) if scene == "catenary" else {}))
+    else:
+        shape = dict(rows=jersey.rows, cols=jersey.cols,
+                     **(dict(tilt=tilt) if scene == "hanging" else {}))
+    return dict(scene=scene, radius=jersey.radius, **shape, rho=material.rho,
+                EA=material.EA, EI=material.EI, gravity=material.gravity,
+                damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
 
 
 def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
-    from solvers.integrators import INTEGRATORS, SimulationError, StaticSolver
+    import sys
 
+    from solvers.integrators import INTEGRATORS, SimulationError
+    from solvers.statics import StaticSolver
+
+    from .adapt import adapt_options, adaptation_from_options
+    from .interrupts import Interrupted
+    from .output import CHANGEABLE, OutputDirectory
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
 
@@ -155,19 +229,28 @@ def run(comm):
                        "cantilever)", 1)
     tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
                         "held course (hanging: 90 horizontal, 0 hanging)")
+    pull = pull_from_options(opts, jersey)
     material = material_from_options(opts)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
+                            "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
-                          "(Newton with load stepping, -static_snes_* options)")
-    load_steps = opts.getInt("load_steps", 5, "load steps of the static solve", 1)
+                          "(Newton with pseudo-transient continuation, -static_snes_* "
+                          "options)")
+    load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
+    movie = opts.getString("animation", "", "file name of a GIF of every output "
+                           "frame, in the output directory (e.g. hanging.gif)")
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
+    change = opts.getString("restart_change", "", "comma-separated checkpoint "
+                            "entries this restart changes on purpose (of "
+                            + ",".join(CHANGEABLE) + ")")
     drift = opts.getReal("drift_tol", 1e-6, "largest constraint violation [m] "
                          "before the run stops", positive=True)
     try:
@@ -175,37 +258,85 @@ def run(comm):
     except ValueError:
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
-    out = output_dir(f"out/{scene}")
+    change = tuple(c for c in change.split(",") if c)
+    for c in change:
+        if c not in CHANGEABLE:
+            raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
+                            + ", ".join(CHANGEABLE))
+    model_options(opts)
+    adapt_options(opts)
+    path = opts.getOutput(f"out/{scene}")
+    if opts.finish("knitfem run", RUN_HELP_FOOTER):
+        return
+    out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
+    if out.note:
+        PETSc.Sys.Print(f"knitfem run: {out.note}")
     try:
-        fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius, tilt)
-    except ValueError as err:
-        raise KnitError(str(err)) from None
-    system = build_system(comm, opts, fabric, material)
-    opts.printHelp("knitfem run")
-    PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, "
-                    f"{system.M.getSize()[0]} coordinates + "
-                    f"{system.C.getSize()[0]} constraints, {comm.size} rank(s)")
-    if static:
-        return run_static(comm, system, scene, out, load_steps, StaticSolver)
-    with PETSc.Log.Stage("Solver set-up"):
-        integrator = INTEGRATORS[method](system, dt)
-    sim = Simulation(system, integrator, out=out, scene=scene, output_every=every,
-                     snapshots=snapshots, drift_tol=drift, checkpoint_every=ckpt,
-                     view=VIEWS[scene])
-    if restart:
-        sim.restart(restart)
-    try:
-        rec = sim.run(t_end)
-    except SimulationError as err:
-        PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in {out})")
-        return 3
-    PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
-                    f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
-                    f"{rec['sag']:.4g} m; summary in {out}/summary.json")
+        try:
+            fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
+                                 tilt, pull)
+        except ValueError as err:
+            raise KnitError(str(err)) from None
+        system = build_system(comm, opts, fabric, material)
+        n, k = system.M.getSize()[0], system.C.getSize()[0]
+        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, {n} coordinates "
+                        f"+ {k} constraints (contacts, fixed points) = {n + k} "
+                        f"unknowns, {comm.size} rank(s)")
+        if static:
+            return run_static(comm, system, scene, out, load_steps, StaticSolver)
+        with PETSc.Log.Stage("Solver set-up"):
+            if method == "symplectic" and not unstable:
+                explicit_step_fits(system, dt)
+            integrator = INTEGRATORS[method](system, dt)
+            adapt = adaptation_from_options(opts, system)
+        lod = getattr(getattr(system, "embedding", None), "volume", None)
+        problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
+                                PETSc.Options().getInt("knit_quadrature", 4),
+                                lod and (lod.n1, lod.n2))
+        sim = Simulation(system, integrator, out=out, scene=scene,
+                         output_every=every, snapshots=snapshots, drift_tol=drift,
+                         checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
+                         command=sys.argv, adapt=adapt, animation=movie)
+        if restart:
+            sim.restart(restart, change)
+        if adapt is not None:
+            adapt(sim)                   # the indicator (and regions) at the start
+        try:
+            rec = sim.run(t_end)
+        except SimulationError as err:
+            PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in "
+                            f"{out.path})")
+            return 3
+        except Interrupted as stop:
+            PETSc.Sys.Print(f"knitfem run: {stop}")
+            return stop.code
+        if adapt is not None:
+            adapt.report(sim, out.path)
+        PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
+                        f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
+                        f"{rec['sag']:.4g} m; summary in {out.path}/summary.json")
+    finally:
+        out.release()
+
+
+def explicit_step_fits(system, dt):
+    """Refuse a symplectic step above its stability limit 2/ω_max: the run
+    would blow up (SimulationError, exit 3, before the first step)."""
+    from solvers.integrators import SimulationError
+    from solvers.stability import stable_step
+
+    h = stable_step(system)
+    if dt > h:
+        raise SimulationError(f"-knit_dt {dt:g} is above the stable step of the symplectic "
+                              f"integrator, 2/omega_max = {h:.3g} s for this yarn "
+                              f"and model: use -knit_dt {float(f'{0.9 * h:.2g}'):g} "
+                              f"or -knit_integrator implicit (-knit_unstable_dt "
+                              f"runs it anyway)")
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
-    """Static equilibrium by Newton with load stepping; writes summary.json."""
+    """Static equilibrium by Newton with pseudo-transient continuation
+    (``solvers/statics.py``); writes summary.json, a VTU and a PNG."""
     import time
 
     from solvers.integrators import SimulationError
@@ -216,7 +347,8 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     with PETSc.Log.Stage("Static solve"):
         solver = StaticSolver(system, load_steps)
         sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
-        P0, pts0 = sim.geometry()
+        out = out.path
+        _, pts0 = sim.geometry()
         if comm.rank == 0:
             sim.initial_lowest = pts0[..., 1].min()
         try:
@@ -229,10 +361,11 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     sim.wall_time = time.perf_counter() - start
     sim.stats["newton"] = its
     rec = sim.summary()
+    sim.write_summary(rec, "completed")
+    P, _ = sim.geometry()
     if comm.rank == 0 and out:
         from . import io
 
-        P, _ = sim.geometry()
         io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
                              system.fabric.radius)
         io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
@@ -278,8 +411,10 @@ def deform(comm):
     amount = opts.getReal("amount", DEFAULT_AMOUNTS[mode], "amount: degrees "
                           "(flexion, shear, torsion) or stretch ratio (traction)")
     lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    out = output_dir(f"out/deform_{mode}")
-    opts.printHelp("knitfem deform")
+    out = opts.getOutput(f"out/deform_{mode}")
+    if opts.finish("knitfem deform"):
+        return
+    output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)

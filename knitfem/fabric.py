@@ -10,6 +10,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from . import bspline
+
 __all__ = ["Fabric"]
 
 
@@ -30,6 +32,7 @@ class Fabric:
     frame : (3, 3) rotation whose columns are the pattern's course, wale and
         thickness directions in the world (identity unless the scene turned
         the fabric); bounding volumes are boxes along these axes.
+    loads : (yarn, s, F) — constant point forces F (n, 3) [N] at P_f(s).
     """
 
     X: np.ndarray
@@ -39,6 +42,8 @@ class Fabric:
     fixed: tuple = field(default_factory=_empty_points)
     clamped: tuple = field(default_factory=_empty_points)
     frame: np.ndarray = field(default_factory=lambda: np.eye(3))
+    loads: tuple = field(default_factory=lambda: (np.zeros(0, int), np.zeros(0),
+                                                 np.zeros((0, 3))))
 
     @property
     def nyarn(self):
@@ -47,6 +52,19 @@ class Fabric:
     @property
     def ncp(self):
         return self.X.shape[1]
+
+    def load_vector(self, yarn_start, yarn_end):
+        """Generalised forces of the point loads on yarns [start, end):
+        F at P_f(s), s = k + u, adds b_a(u) F to control point k + a of yarn f.
+        Returns (control points of those yarns, 3)."""
+        Q = np.zeros((yarn_end - yarn_start, self.ncp, 3))
+        yarn, s, F = self.loads
+        mine = (yarn >= yarn_start) & (yarn < yarn_end)
+        k, u = bspline.locate(s[mine], self.ncp - 3)
+        idx = (yarn[mine] - yarn_start, k[:, None] + np.arange(4))
+        np.add.at(Q, (idx[0][:, None], idx[1]),
+                  bspline.basis(u)[..., None] * np.asarray(F)[mine][:, None])
+        return Q.reshape(-1, 3)
 
     def rotated(self, R, centre):
         """The same fabric turned rigidly by the rotation R about ``centre``."""

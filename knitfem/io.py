@@ -2,11 +2,16 @@
 
 Centrelines are the splines sampled ``SAMPLES`` times a segment, written as
 "line" cells with point data ``radius`` (for ParaView's Tube filter, "Vary
-radius: By Scalar") and ``yarn``; time series go to XDMF + HDF5.
+radius: By Scalar") and ``yarn``; time series go to XDMF + HDF5, one file a
+frame. Every file is written under a temporary name and renamed into place.
 """
 
+import contextlib
+import html
 import os
+import socket
 
+import h5py
 import matplotlib
 import meshio
 import numpy as np
@@ -17,8 +22,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-__all__ = ["centrelines", "write_centrelines", "CentrelineSeries", "draw",
-           "draw_panels", "VIEWS"]
+__all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
+           "draw", "draw_panels", "animate", "VIEWS"]
 
 SAMPLES = 6
 
@@ -51,65 +56,145 @@ def write_centrelines(path, P, radius, point_data=None):
     meshio.write(path, meshio.Mesh(pts, cells, point_data=data))
 
 
-class CentrelineSeries:
-    """XDMF + HDF5 time series of moving yarn centrelines (call on rank 0).
+def atomic_write(path, write):
+    """Write ``path`` through ``write(tmp)`` on a unique temporary name in the
+    same directory, then rename: readers see the old file or the new one,
+    never a part. The temporary keeps the extension (matplotlib reads it)."""
+    head, tail = os.path.split(path)
+    stem, ext = os.path.splitext(tail)
+    tmp = os.path.join(head, f".{stem}.{socket.gethostname()}.{os.getpid()}.tmp{ext}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
 
-    Every step stores its own geometry and point data in ``<stem>.h5`` and
-    the small XDMF index is rewritten, so what was written so far stays
-    readable in ParaView (Xdmf3 reader) if a run stops early.
+
+class CentrelineSeries:
+    """XDMF time series of moving yarn centrelines, one HDF5 file a frame
+    (call on rank 0).
+
+        <stem>.xdmf              the index: a temporal collection of grids
+        <stem>/mesh.h5           topology, radius, yarn (constant)
+        <stem>/<step>.h5         geometry (and point data) of one output step
+
+    Each frame is written to a temporary and renamed, and the index is
+    rewritten the same way, so a run stopped at any instant (``kill -9``, a
+    full disk) leaves a readable series of whole frames. Every grid carries
+    its own geometry (ParaView's Xdmf3 reader) and the same points as the
+    vector field ``position`` (meshio's ``TimeSeriesReader`` reads geometry
+    once, point data per step).
+
+    ``keep`` continues the series already in the directory with its frames
+    up to that step (a restart into the same directory); otherwise earlier
+    frames are removed. ``note`` is recorded in the index as an XDMF
+    ``Information`` (e.g. the checkpoint a series continues from).
     """
 
-    def __init__(self, path, P0, radius):
-        import h5py
-
-        self.path, self.radius, self.steps = path, radius, []
-        self.h5name = os.path.splitext(os.path.basename(path))[0] + ".h5"
-        self.h5 = h5py.File(os.path.join(os.path.dirname(path) or ".",
-                                         self.h5name), "w")
-        pts, cells, _ = _mesh_arrays(P0, radius)
+    def __init__(self, path, P0, radius, keep=None, note=""):
+        self.path, self.radius, self.note = path, radius, note
+        stem = os.path.splitext(os.path.basename(path))[0]
+        self.dir = os.path.join(os.path.dirname(path) or ".", stem)
+        self.rel = stem
+        pts, cells, data = _mesh_arrays(P0, radius)
         self.npts, self.ncells = len(pts), len(cells[0][1])
-        self.h5["topology"] = cells[0][1]
+        self.steps = {}
+        os.makedirs(self.dir, exist_ok=True)
+        if keep is not None:
+            self.steps = {s: v for s, v in self._existing().items() if s <= keep}
+        for name in os.listdir(self.dir):
+            step = self._step_of(name)
+            if name.startswith(".") or (step is not None and step not in self.steps):
+                os.remove(os.path.join(self.dir, name))
 
-    def write(self, t, P, point_data=None):
-        pts, _, data = _mesh_arrays(P, self.radius, point_data)
-        n = len(self.steps)
-        self.h5[f"step{n}/geometry"] = pts
-        for name, values in data.items():
-            self.h5[f"step{n}/{name}"] = values
-        self.h5.flush()
-        self.steps.append((float(t), {k: np.shape(v) for k, v in data.items()}))
+        def mesh(tmp):
+            with h5py.File(tmp, "w") as f:
+                f["topology"] = cells[0][1]
+                for key in ("radius", "yarn"):
+                    f[key] = data[key]
+
+        atomic_write(os.path.join(self.dir, "mesh.h5"), mesh)
         self._write_xdmf()
 
-    def _item(self, dataset, shape):
+    @staticmethod
+    def _step_of(name):
+        stem, ext = os.path.splitext(name)
+        return int(stem) if ext == ".h5" and stem.isdigit() else None
+
+    def _existing(self):
+        """{step: (t, {point-data name: shape})} of the whole frames on disk."""
+        found = {}
+        for name in os.listdir(self.dir):
+            step = self._step_of(name)
+            if step is None:
+                continue
+            try:
+                with h5py.File(os.path.join(self.dir, name), "r") as f:
+                    found[step] = (float(f.attrs["t"]), {
+                        k: f[k].shape for k in f if k != "geometry"})
+            except (OSError, KeyError):
+                continue
+        return found
+
+    def write(self, step, t, P, point_data=None):
+        """Frame ``step`` at time t: control points P (nyarn, n, 3)."""
+        pts, _, data = _mesh_arrays(P, self.radius, point_data)
+        extra = {k: v for k, v in data.items() if k not in ("radius", "yarn")}
+        shapes = {k: np.shape(v) for k, v in extra.items()}
+
+        def frame(tmp):
+            with h5py.File(tmp, "w") as f:
+                f["geometry"] = pts
+                for name, values in extra.items():
+                    f[name] = values
+                f.attrs["t"], f.attrs["step"] = float(t), int(step)
+
+        atomic_write(os.path.join(self.dir, f"{step:08d}.h5"), frame)
+        self.steps[int(step)] = (float(t), shapes)
+        self._write_xdmf()
+
+    def _item(self, file, dataset, shape):
         dims = " ".join(map(str, shape))
         return (f'<DataItem Dimensions="{dims}" Format="HDF" NumberType="Float" '
-                f'Precision="8">{self.h5name}:/{dataset}</DataItem>')
+                f'Precision="8">{self.rel}/{file}:/{dataset}</DataItem>')
+
+    def _attribute(self, name, file, shape, dataset=None):
+        kind = "Vector" if len(shape) == 2 and shape[1] == 3 else "Scalar"
+        return (f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">'
+                f'{self._item(file, dataset or name, shape)}</Attribute>')
 
     def _write_xdmf(self):
+        one, three = (self.npts,), (self.npts, 3)
         grids = []
-        for n, (t, shapes) in enumerate(self.steps):
-            attrs = "".join(
-                f'<Attribute Name="{name}" AttributeType='
-                f'"{"Scalar" if len(shape) == 1 else "Vector"}" Center="Node">'
-                f'{self._item(f"step{n}/{name}", shape)}</Attribute>'
-                for name, shape in shapes.items())
+        for step in sorted(self.steps):
+            t, shapes = self.steps[step]
+            frame = f"{step:08d}.h5"
             grids.append(
-                f'<Grid Name="step{n}"><Time Value="{t!r}"/>'
+                f'<Grid Name="step{step}" GridType="Uniform"><Time Value="{t!r}"/>'
                 f'<Topology TopologyType="Polyline" NodesPerElement="2" '
                 f'NumberOfElements="{self.ncells}"><DataItem Dimensions='
                 f'"{self.ncells} 2" Format="HDF" NumberType="Int" Precision="8">'
-                f'{self.h5name}:/topology</DataItem></Topology>'
+                f'{self.rel}/mesh.h5:/topology</DataItem></Topology>'
                 f'<Geometry GeometryType="XYZ">'
-                f'{self._item(f"step{n}/geometry", (self.npts, 3))}</Geometry>'
-                f'{attrs}</Grid>')
-        with open(self.path, "w") as f:
-            f.write('<?xml version="1.0"?>\n<Xdmf Version="3.0"><Domain>'
-                    '<Grid Name="yarns" GridType="Collection" '
-                    'CollectionType="Temporal">\n' + "\n".join(grids)
-                    + "\n</Grid></Domain></Xdmf>\n")
+                f'{self._item(frame, "geometry", three)}</Geometry>'
+                + self._attribute("position", frame, three, "geometry")
+                + self._attribute("radius", "mesh.h5", one)
+                + self._attribute("yarn", "mesh.h5", one)
+                + "".join(self._attribute(n, frame, s) for n, s in shapes.items())
+                + '</Grid>')
+        note = (f'<Information Name="note" Value="{html.escape(self.note)}"/>\n'
+                if self.note else "")
 
-    def close(self):
-        self.h5.close()
+        def index(tmp):
+            with open(tmp, "w") as f:
+                f.write('<?xml version="1.0"?>\n<Xdmf Version="3.0"><Domain>\n'
+                        + note + '<Grid Name="yarns" GridType="Collection" '
+                        'CollectionType="Temporal">\n' + "\n".join(grids)
+                        + "\n</Grid></Domain></Xdmf>\n")
+
+        atomic_write(self.path, index)
 
 
 def _camera(azimuth, elevation):
@@ -123,7 +208,29 @@ def _camera(azimuth, elevation):
 
 
 VIEWS = {"front": _camera(0, 0), "side": _camera(90, 0),
-         "oblique": _camera(-35, 20)}
+         "oblique": _camera(-35, 20), "three_quarter": _camera(-40, 25)}
+
+
+def _projected_box(P_or_extent, view, radius):
+    """(lo, hi) on screen of a fabric P or of a world box (lo, hi), padded."""
+    if isinstance(P_or_extent, tuple):
+        lo, hi = P_or_extent
+        pts = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
+    else:
+        pts = np.asarray(P_or_extent).reshape(-1, 3)
+    box = pts @ VIEWS[view].T
+    return box.min(0) - 2 * radius, box.max(0) + 2 * radius
+
+
+def _scale_bar(ax, lo, hi):
+    """A bar of a round length (1, 2 or 5 × 10^k m) near a fifth of the width."""
+    width = hi[0] - lo[0]
+    k = np.floor(np.log10(width / 5))
+    length = min((m * 10**k for m in (1, 2, 5)), key=lambda b: abs(b - width / 5))
+    x0, y0 = lo[0] + 0.05 * width, lo[1] + 0.05 * (hi[1] - lo[1])
+    ax.plot([x0, x0 + length], [y0, y0], color="k", lw=2)
+    ax.text(x0 + length / 2, y0, f"{length * 1e3:g} mm", ha="center", va="bottom",
+            fontsize=8)
 
 
 def _draw_on(ax, P, radius, view, extent):
@@ -137,14 +244,9 @@ def _draw_on(ax, P, radius, view, extent):
     yarn = np.repeat(np.arange(nyarn), m - 1)
     depth = seg[:, :, 2].mean(axis=1)
     order = np.argsort(depth)
-    if extent is None:
-        box = seg.reshape(-1, 3)
-    else:
-        corners = np.array(np.meshgrid(*zip(*extent), indexing="ij")).reshape(3, -1).T
-        box = corners @ cam.T
-    lo, hi, pad = box.min(0), box.max(0), 2 * radius
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    lo, hi = _projected_box(P if extent is None else tuple(extent), view, radius)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     scale = ax.transData.transform([(2 * radius, 0)])[0, 0] \
         - ax.transData.transform([(0, 0)])[0, 0]
@@ -161,27 +263,32 @@ def _draw_on(ax, P, radius, view, extent):
         ax.set_xlabel("z [m]")
         ax.set_ylabel("y [m]")
     else:
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_axis_off()
+        _scale_bar(ax, lo, hi)
+
+
+def _figsize(box, width, most=12.0):
+    """(width, height) in inches for a screen box (lo, hi)."""
+    (x0, y0), (x1, y1) = box[0][:2], box[1][:2]
+    return width, max(2.0, min(most, width * (y1 - y0) / (x1 - x0)))
 
 
 def _save(fig, path):
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        atomic_write(path, fig.savefig)
+    finally:
+        plt.close(fig)
 
 
 def draw(path, P, radius, title="", view="front", extent=None):
-    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS)."""
-    lo, hi = (np.asarray(P).reshape(-1, 3).min(0), np.asarray(P).reshape(-1, 3).max(0)) \
-        if extent is None else extent
-    box = np.array([lo, hi]) @ VIEWS[view].T
-    width, height = np.abs(box[1, :2] - box[0, :2]) + 4 * radius
-    fig, ax = plt.subplots(figsize=(8.0, max(2.0, min(12.0, 8.0 * height / width))),
-                           dpi=110)
-    fig.tight_layout()
+    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS), its
+    limits fitted to P (or to the world box ``extent``)."""
+    box = _projected_box(P if extent is None else tuple(extent), view, radius)
+    fig, ax = plt.subplots(figsize=_figsize(box, 8.0), dpi=110)
     _draw_on(ax, P, radius, view, extent)
     ax.set_title(title)
+    fig.tight_layout()
     _save(fig, path)
 
 
@@ -189,12 +296,39 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
     """One PNG with the fabrics ``frames`` side by side, in one common view
     and scale (e.g. the snapshots of a run, as the paper's Figures 10–13)."""
     if extent is None:
-        flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
-        extent = (flat.min(0), flat.max(0))
-    fig, axes = plt.subplots(1, len(frames), figsize=(3.2 * len(frames), 3.6),
+        extent = _world_box(frames)
+    w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
+    fig, axes = plt.subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
     for ax, P, title in zip(axes[0], frames, titles):
         _draw_on(ax, P, radius, view, extent)
         ax.set_title(title)
     fig.tight_layout()
     _save(fig, path)
+
+
+def _world_box(frames):
+    """(lo, hi) around every fabric in ``frames``."""
+    flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
+    return flat.min(0), flat.max(0)
+
+
+def animate(path, times, frames, radius, title="", view="three_quarter", fps=10):
+    """A GIF (matplotlib.animation, Pillow) of the fabrics ``frames`` at
+    ``times``, in one view and scale."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    extent = _world_box(frames)
+    fig, ax = plt.subplots(figsize=_figsize(_projected_box(extent, view, radius),
+                                            5.0, most=8.0), dpi=80)
+
+    def show(k):
+        ax.clear()
+        _draw_on(ax, frames[k], radius, view, extent)
+        ax.set_title(f"{title}, t = {times[k]:.2f} s")
+        return []
+
+    anim = FuncAnimation(fig, show, frames=len(frames), blit=False)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)

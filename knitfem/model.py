@@ -10,6 +10,11 @@ values; only C couples ranks (contacts between neighbouring courses).
 The model is a "mechanical system" for ``solvers/``: mass M (and its scalar
 factor m), constraints C, c, d, and the callbacks ``forces`` and
 ``stiffness``. The reduced model in ``reduced.py`` offers the same interface.
+
+The element loops run in the kernels of ``kernels.py`` (compiled by default,
+the numpy reference with ``kernels="numpy"``); they add the elastic forces
+into Q's array and write K's values in place: on one rank K is created on
+the model's own CSR arrays, so no copy reaches PETSc.
 """
 
 from dataclasses import dataclass
@@ -19,9 +24,10 @@ from petsc4py import PETSc
 
 from . import constraints as cons
 from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from .kernels import yarn_kernels
 from .yarn import YarnElements
 
-__all__ = ["Material", "FullModel"]
+__all__ = ["Material", "FullModel", "applied_forces"]
 
 EV_FORCES = PETSc.Log.Event("knitForces")
 EV_TANGENT = PETSc.Log.Event("knitTangent")
@@ -44,15 +50,33 @@ class Material:
     damping: float = 0.0
 
 
+def applied_forces(system, v, Q):
+    """Q = Q_g − c_d M v: gravity and damping of a mechanical system (collective).
+
+    Written in the system's own M and Q_g, so that it serves the full model
+    and, exactly, the reduced one: Γᵀ (Q_g − c_d M Γα̇) = Γᵀ Q_g − c_d M^V α̇.
+    A term added here must keep that form (an operator of the system times
+    its state or velocity).
+    """
+    c_d = system.material.damping
+    if c_d:
+        system.M.mult(v, Q)
+        Q.scale(-c_d)
+        Q.axpy(1.0, system.Qg)
+    else:
+        system.Qg.copy(Q)
+
+
 class FullModel:
     """Full model of a ``Fabric``: yarn elements, M, C assembled in PETSc.
 
-    Collective on ``comm``.
+    Collective on ``comm``. ``nq`` Gauss points a segment; ``kernels`` one of
+    ``kernels.KINDS`` ("compiled" or "numpy").
     """
 
     kind = "full"
 
-    def __init__(self, comm, fabric, material, nq=4):
+    def __init__(self, comm, fabric, material, nq=4, kernels="compiled"):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
         nseg = fabric.ncp - 3
@@ -64,6 +88,7 @@ class FullModel:
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
                                          material.rho, material.EA, material.EI,
                                          nq=nq)
+            self.kernels = yarn_kernels(self.elements, kernels)
             self.pattern = ElementPattern(self.conn, lay.cp_start, lay.ncp_local)
             n, N = lay.ncp_local, lay.ncp
             m_csr = (self.pattern.indptr, self.pattern.indices,
@@ -72,14 +97,18 @@ class FullModel:
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
             self._build_constraints()
-            indptr3, indices3, self.slot3 = self.pattern.blocks3()
+            indptr3, indices3, slot3 = self.pattern.blocks3()
+            self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
             self.indptr3 = indptr3.astype(PETSc.IntType)
             self.indices3 = indices3.astype(PETSc.IntType)
+            self.K_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
             self.K = None
             self.Qg = self.M.createVecLeft()
             G = self.M.createVecRight()
             G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
             self.M.mult(G, self.Qg)
+            self.Qg.getArray()[:] += fabric.load_vector(   # point loads
+                lay.yarn_start, lay.yarn_end).ravel()
             G.destroy()
             self.total_mass = self.m.getRowSum().sum()
         for A, name in ((self.m, "full_m_"), (self.M, "full_M_"),
@@ -135,37 +164,51 @@ class FullModel:
         e = self.elements.energy(self.yarn_points(x))
         return self.comm.tompi4py().allreduce(e)
 
+    def add_elastic_forces(self, x, Q):
+        """Q += −∂E/∂ε (E = E_s + E_b; local, no communication)."""
+        self.kernels.add_gradient(self.yarn_points(x), Q.getArray().reshape(-1, 3),
+                                  -1.0)
+
     def forces(self, x, v, Q):
         """Q = −∂E/∂ε + Q_g − c_d M ε̇ (collective)."""
         with EV_FORCES:
-            g = self.elements.gradient(self.yarn_points(x))
-            self.M.mult(v, Q)
-            Q.scale(-self.material.damping)
-            Q.axpy(1.0, self.Qg)
-            q = Q.getArray()
-            q -= g.ravel()
+            applied_forces(self, v, Q)
+            self.add_elastic_forces(x, Q)
 
     def stiffness_values(self, x):
         """Values of K = ∂²E/∂ε² in the local CSR pattern (indptr3, indices3):
-        K = Σ_e K_e, summed by one ``np.bincount`` over the pattern slots."""
+        K = Σ_e K_e, written into ``K_values`` (returned) through the slots of
+        the element entries."""
         with EV_TANGENT:
-            H = self.elements.element_hessian(self.yarn_points(x))
-            return np.bincount(self.slot3.ravel(), weights=H.ravel(),
-                               minlength=len(self.indices3))
+            self.kernels.hessian_values(self.yarn_points(x), self.slot3, self.K_values)
+            return self.K_values
 
     def stiffness(self, x):
-        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused)."""
+        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused).
+
+        On one rank K holds ``K_values`` itself (``createAIJWithArrays``), so
+        the kernel's values are K's; on several, they are copied in."""
         values = self.stiffness_values(x)
         with EV_ASSEMBLY:
             if self.K is None:
-                n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
-                self.K = create_aij(self.comm, (n, N), (n, N),
-                                    (self.indptr3, self.indices3, values), bsize=3)
-                self.K.setOptionsPrefix("full_K_")
-            else:
+                self.K = self._create_stiffness(values)
+            elif self.comm.size > 1:
                 self.K.setValuesCSR(self.indptr3, self.indices3, values)
-                self.K.assemble()
+            self.K.assemble()                  # a new state: factorisations redo
             return self.K
+
+    def _create_stiffness(self, values):
+        n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
+        if self.comm.size > 1:
+            K = create_aij(self.comm, (n, N), (n, N),
+                           (self.indptr3, self.indices3, values), bsize=3)
+        else:
+            K = PETSc.Mat().createAIJWithArrays(
+                (n, N), (self.indptr3, self.indices3, values), comm=self.comm)
+            K.setBlockSize(3)
+            K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        K.setOptionsPrefix("full_K_")
+        return K
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""

@@ -3,12 +3,21 @@
 PETSc's own getters register no help text and raise tracebacks on a value
 that does not parse; ``KnitOptions`` reads every value as a string, parses
 it, and turns bad input into a one-line ``KnitError`` naming the option and
-what it accepts. ``-help`` prints the declared lines after PETSc's own.
+what it accepts. Once a command has declared its options, ``finish`` prints
+them under ``-help`` (the command then stops) or refuses an option of ours
+that nobody declared, naming the nearest declared one; ``unused_options``
+lists the PETSc options nothing read, for a warning at the end.
 """
 
+import ctypes
+import difflib
+
+import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["KnitError", "KnitOptions"]
+__all__ = ["KnitError", "KnitOptions", "unused_options"]
+
+OURS = ("knit_", "bench_")
 
 
 class KnitError(Exception):
@@ -16,13 +25,21 @@ class KnitError(Exception):
 
 
 class KnitOptions:
-    """Our -knit_ options, each with a default and a help line."""
+    """Our -knit_ options, each with a default and a help line.
+
+    ``declared`` holds every option name any instance declared in this
+    process; ``help`` is set by the command line (``knitfem CMD -help``).
+    """
+
+    declared = set()
+    help = False
 
     def __init__(self, prefix="knit_"):
         self.db, self.prefix, self.lines = PETSc.Options(prefix), prefix, []
 
     def _raw(self, name, default, text):
         self.lines.append(f"  -{self.prefix}{name} <{default}>: {text}")
+        KnitOptions.declared.add(self.prefix + name)
         if not self.db.hasName(name):
             return None
         return self.db.getString(name, "")
@@ -100,7 +117,52 @@ class KnitOptions:
         raw = self._raw(name, default, text)
         return default if raw is None else raw
 
+    def getOutput(self, default):
+        """The output directory, ``-o DIR`` (no prefix)."""
+        self.lines.append(f"  -o <{default}>: output directory")
+        KnitOptions.declared.add("o")
+        return PETSc.Options().getString("o", default)
+
     def printHelp(self, title):
-        """Under -help, print the declared options (collective)."""
-        if PETSc.Options().hasName("help"):
+        """Under -help, print the declared options (collective). True if it did."""
+        if KnitOptions.help or PETSc.Options().hasName("help"):
             PETSc.Sys.Print(f"{title} options:\n" + "\n".join(self.lines))
+            return True
+        return False
+
+    def finish(self, title, footer=""):
+        """After the last declaration: refuse an option of ours (-knit_*,
+        -bench_*) that was not declared; under -help print the options and
+        ``footer`` and return True (the command stops)."""
+        unknown = sorted(k for k in PETSc.Options().getAll()
+                         if k.startswith(OURS) and k not in KnitOptions.declared)
+        if unknown:
+            name = unknown[0]
+            near = difflib.get_close_matches(name, sorted(KnitOptions.declared), 1)
+            hint = f"; did you mean -{near[0]}?" if near else ""
+            raise KnitError(f"unknown option -{name}{hint} ({title} -help lists "
+                            "the options)")
+        if self.printHelp(title):
+            if footer:
+                PETSc.Sys.Print(footer)
+            return True
+        return False
+
+
+def unused_options():
+    """Names of the options in PETSc's database that nothing has read
+    (PetscOptionsLeftGet; empty where the symbol cannot be found)."""
+    try:
+        lib = ctypes.CDLL(PETSc.__file__)
+        get, restore = lib.PetscOptionsLeftGet, lib.PetscOptionsLeftRestore
+    except (OSError, AttributeError):
+        return []
+    Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+    n = Int()
+    names, values = (ctypes.POINTER(ctypes.c_char_p)() for _ in range(2))
+    args = (None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))
+    if get(*args):
+        return []
+    left = [names[i].decode() for i in range(n.value)]
+    restore(*args)
+    return left

@@ -6,20 +6,21 @@ equations in α are
 
     M^V α̈ = Q^V + (CΓ)ᵀλ,   (CΓ) α = d,   M^V = Γᵀ M Γ,   Q^V = Γᵀ Q(Γα, Γα̇),
 
-M^V formed once by PETSc's PtAP. The tangent Γᵀ K Γ is formed densely
-(``DenseTangent``) while the volume has at most ``DENSE_LIMIT`` control
-points — Γ̃ is then nearly dense and BLAS beats a sparse product — and by
-PtAP, the symbolic product reused, beyond. Contacts are dropped (the embedding keeps the
-stitches together); fixed points and clamps stay, reduced to an independent
-set of rows (a rank-revealing SVD of cΓ̃), because several fixed points can
-say the same thing about α.
+M^V formed once by PETSc's PtAP. The tangent Γᵀ K Γ is formed densely from
+the values of K (``GroupedTangent``: a compiled kernel and one GEMM a patch
+of V) while the volume has at most ``DENSE_LIMIT`` control points and the
+kernels are compiled, and by PtAP, the symbolic product reused, otherwise.
+Contacts are dropped (the embedding keeps the stitches together); fixed
+points and clamps stay, reduced to an independent set of rows (a
+rank-revealing SVD of cΓ̃), because several fixed points can say the same
+thing about α.
 """
 
 import numpy as np
-import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .assembly import create_aij, kron_identity
+from .model import EV_FORCES, applied_forces
 from .options import KnitError
 from .volume import BoundingVolume
 
@@ -76,46 +77,76 @@ class Embedding:
         self.Gamma_scalar.destroy()
 
 
-class DenseTangent:
-    """Γᵀ K Γ as a dense (3n, 3n) array from the values of K (local rows).
+class GroupedTangent:
+    """Γᵀ K Γ as a dense (3n, 3n) array from the values of K (local rows), by
+    the compiled kernel ``reduce_tangent``.
 
-    With Γ = Γ̃ ⊗ I₃ and K in 3×3 blocks K_pq,
+    With Γ = Γ̃ ⊗ I₃ and K^{ij} the scalar matrix of the (i, j) components of
+    K's 3 × 3 blocks,
 
-        (Γᵀ K Γ)_{(b,i),(c,j)} = Σ_p Γ̃_pb Y_{(p,i),(c,j)},   Y_{·,(c,j)} = K_{·,j} Γ̃_{·c},
+        (Γᵀ K Γ)_{(c,i),(d,j)} = R^{ij}_{cd},   R^{ij} = Γ̃ᵀ K^{ij} Γ̃,   R^{ji} = (R^{ij})ᵀ,
 
-    where K_{·,j} holds the columns of K for component j: three sparse ×
-    dense products and one dense product Γ̃ᵀ Y. K couples no two yarns, so
-    every rank forms the sum over its own yarns.
+    (K is symmetric), so the six pairs i ≤ j suffice. Yarn control points in
+    the same patch of V share the columns P of their rows of Γ̃ (4·4·2 of
+    them); a group is a patch's points whose neighbours q (K_pq ≠ 0) all lie
+    in it, or the rest of them, and with U the columns the group reaches,
+
+        R^{ij}[P, U] += Γ̃_{·P}ᵀ Y^{ij},   Y^{ij}_p = Σ_q K^{ij}_{pq} Γ̃_{qU},
+
+    Y formed for a few dozen points at a time and multiplied at once (BLAS
+    dgemm) while it is in cache. K couples no two yarns, so every rank forms
+    the sum over its own yarns.
     """
 
     def __init__(self, full, embedding):
-        lo = 3 * full.layout.cp_start
-        n3 = len(full.indptr3) - 1
-        slot = sp.csr_matrix((np.arange(1, len(full.indices3) + 1), full.indices3 - lo,
-                              full.indptr3), shape=(n3, n3))
-        self.columns = []
-        for j in range(3):
-            Kj = slot[:, j::3].tocsr()
-            self.columns.append((Kj.indptr, Kj.indices, Kj.data - 1))
-        self.G = embedding.scalar_dense()
-        self.n3 = n3
+        from .kernels import compiled_module
 
-    def __call__(self, values):
-        n, nv = self.G.shape
-        Y = np.empty((n, 3, nv, 3))
-        for j, (indptr, indices, slots) in enumerate(self.columns):
-            Kj = sp.csr_matrix((values[slots], indices, indptr), shape=(self.n3, n))
-            Y[..., j] = (Kj @ self.G).reshape(n, 3, nv)
-        return (self.G.T @ Y.reshape(n, -1)).reshape(3 * nv, 3 * nv)
+        self.module = compiled_module()
+        pattern = full.pattern
+        cols, vals = embedding.cols, embedding.vals
+        neighbour = pattern.indices - pattern.row_start
+        rows = np.repeat(np.arange(len(cols)), np.diff(pattern.indptr))
+        keys, patch = np.unique(cols, axis=0, return_inverse=True)
+        patch = patch.ravel()
+        outside = np.zeros(len(cols), dtype=bool)        # a neighbour elsewhere
+        np.logical_or.at(outside, rows, patch[neighbour] != patch[rows])
+        groups, group = np.unique(2 * patch + outside, return_inverse=True)
+        order = np.argsort(group, kind="stable")
+        start = np.searchsorted(group[order], np.arange(len(groups) + 1))
+        reach = [np.unique(cols[neighbour[np.isin(rows, order[a:b])]])
+                 for a, b in zip(start[:-1], start[1:])]
+        width = np.array([len(r) for r in reach], dtype=np.int64)
+        padded = np.zeros((len(groups), max(width, default=1)), dtype=np.int64)
+        gmap = np.full((len(groups), embedding.volume.size), -1, dtype=np.int32)
+        for g, r in enumerate(reach):
+            padded[g, :len(r)] = r
+            gmap[g, r] = np.arange(len(r))
+        self.args = (np.ascontiguousarray(pattern.indptr, dtype=np.int64),
+                     np.ascontiguousarray(neighbour, dtype=np.int64),
+                     np.ascontiguousarray(cols, dtype=np.int64),
+                     np.ascontiguousarray(vals), order.astype(np.int64),
+                     start.astype(np.int64), keys[groups // 2].astype(np.int64),
+                     padded, width, gmap)
+
+    def __call__(self, values, out):
+        """out (3n, 3n) = Γᵀ K Γ over this rank's yarns, K given by its values."""
+        self.module.reduce_tangent(values, *self.args, out)
+        return out
+
+
+def volume_options(opts):
+    """((n1, n2), path) from -knit_lod n1,n2 and -knit_volume FILE."""
+    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
+    path = opts.getString("volume", "", "bounding volume file (meshio; default: "
+                          "a box around the fabric at rest)")
+    return lod, path
 
 
 def embedding_from_options(opts, comm, fabric, layout=None):
     """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ."""
     from .assembly import YarnLayout
 
-    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    path = opts.getString("volume", "", "bounding volume file (meshio; default: "
-                          "a box around the fabric at rest)")
+    lod, path = volume_options(opts)
     if path:
         try:
             volume = BoundingVolume.load(path)
@@ -154,8 +185,9 @@ class ReducedModel:
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.Qfull = G.createVecLeft()
         self.K = None
-        self.dense = (DenseTangent(full, embedding)
-                      if embedding.volume.size <= DENSE_LIMIT else None)
+        self.dense = (GroupedTangent(full, embedding)
+                      if embedding.volume.size <= DENSE_LIMIT
+                      and full.kernels.kind == "compiled" else None)
         # the integrators' Newton matrices, too, are dense on one rank
         self.dense_saddle = self.dense is not None and self.comm.size == 1
 
@@ -217,15 +249,19 @@ class ReducedModel:
         return self.full.strain(self.full_state(alpha, self.eps))
 
     def forces(self, alpha, alphadot, Q):
-        """Q^V = Γᵀ Q(Γα, Γα̇)."""
+        """Q^V = Γᵀ Q(Γα, Γα̇) = −Γᵀ ∂E/∂ε(Γα) + Γᵀ Q_g − c_d M^V α̇ (collective):
+        the elastic forces of the yarns through Γᵀ, the applied ones on the
+        reduced side (``model.applied_forces``)."""
         G = self.embedding.Gamma
-        G.mult(alpha, self.eps)
-        G.mult(alphadot, self.epsdot)
-        self.full.forces(self.eps, self.epsdot, self.Qfull)
-        G.multTranspose(self.Qfull, Q)
+        with EV_FORCES:
+            G.mult(alpha, self.eps)
+            applied_forces(self, alphadot, Q)
+            self.Qfull.zeroEntries()
+            self.full.add_elastic_forces(self.eps, self.Qfull)
+            G.multTransposeAdd(self.Qfull, Q, Q)
 
     def stiffness(self, alpha):
-        """Γᵀ K(Γα) Γ: dense (``DenseTangent``) or by PtAP, reusing the
+        """Γᵀ K(Γα) Γ: dense (``GroupedTangent``) or by PtAP, reusing the
         symbolic product."""
         x = self.full_state(alpha, self.eps)
         if self.dense is not None:
@@ -240,26 +276,39 @@ class ReducedModel:
         return self.K
 
     def _dense_stiffness(self, x):
-        """Γᵀ K Γ: every rank's yarns summed (one Allreduce), rows set in place
-        into a dense-pattern AIJ."""
+        """Γᵀ K Γ into R: every rank's yarns summed (one Allreduce). K is an
+        AIJ matrix with a dense pattern whose values, on one rank, are R's own
+        storage; on several, each rank's rows of R are copied in."""
         from mpi4py import MPI
 
         values = self.full.stiffness_values(x)
         with EV_PTAP:
-            R = self.dense(values)
+            if self.K is None:
+                N = 3 * self.embedding.volume.size
+                self.R = np.zeros((N, N))
+            self.dense(values, self.R)
             if self.comm.size > 1:
-                self.comm.tompi4py().Allreduce(MPI.IN_PLACE, R, op=MPI.SUM)
+                self.comm.tompi4py().Allreduce(MPI.IN_PLACE, self.R, op=MPI.SUM)
             lo, hi = self.M.getOwnershipRange()
             if self.K is None:
-                N = R.shape[0]
-                self.dense_csr = (np.arange(hi - lo + 1, dtype=PETSc.IntType) * N,
-                                  np.tile(np.arange(N, dtype=PETSc.IntType), hi - lo))
-                self.K = create_aij(self.comm, (hi - lo, N), (hi - lo, N),
-                                    (*self.dense_csr, R[lo:hi].ravel()), bsize=3)
-            else:
-                self.K.setValuesCSR(*self.dense_csr, R[lo:hi].ravel())
-                self.K.assemble()
+                self._create_dense(lo, hi)
+            elif self.comm.size > 1:
+                self.K.setValuesCSR(*self.dense_csr, self.R[lo:hi].ravel())
+            self.K.assemble()                  # a new state: factorisations redo
         return self.K
+
+    def _create_dense(self, lo, hi):
+        N = len(self.R)
+        self.dense_csr = (np.arange(hi - lo + 1, dtype=PETSc.IntType) * N,
+                          np.tile(np.arange(N, dtype=PETSc.IntType), hi - lo))
+        if self.comm.size > 1:
+            self.K = create_aij(self.comm, (hi - lo, N), (hi - lo, N),
+                                (*self.dense_csr, self.R[lo:hi].ravel()), bsize=3)
+        else:
+            self.K = PETSc.Mat().createAIJWithArrays(
+                (N, N), (*self.dense_csr, self.R.reshape(-1)), comm=self.comm)
+            self.K.setBlockSize(3)
+            self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
 
     def project(self, eps, alpha):
         """Mass-weighted least squares α = (ΓᵀMΓ)⁻¹ Γᵀ M ε (full → reduced)."""

@@ -7,6 +7,10 @@ hanging     r × nc jersey, the top course held at its nc loop heads; the
             fabric starts turned by ``tilt`` degrees about the line of the
             held heads (90: horizontal, so it falls and swings down to hang;
             0: already hanging, it only settles under its weight).
+pulled      r × nc jersey hanging from its top course (held at its loop
+            heads, at rest, not turned), pulled at the loop head of one
+            stitch by a constant point force: smooth far away, the loops
+            deform near the pull (the scene of the mixed and adaptive models).
 freefall    r × nc jersey, no world constraints.
 catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
             rest a circular arc of length L sagging in −y (stress free).
@@ -22,7 +26,7 @@ from .pattern import jersey_fabric
 
 __all__ = ["SCENES", "make_fabric", "straight_yarn", "arc_yarn"]
 
-SCENES = ("hanging", "freefall", "catenary", "cantilever")
+SCENES = ("hanging", "pulled", "freefall", "catenary", "cantilever")
 
 
 def interpolating_control_points(points):
@@ -72,11 +76,26 @@ def tilted(fabric, degrees):
     return fabric.rotated(R, held.mean(axis=0))
 
 
+def pulled(jersey, stitch, force):
+    """The hanging jersey with a point force [N] at the loop head of
+    ``stitch`` = (column, course)."""
+    c, r = stitch
+    if not (0 <= c < jersey.cols and 0 <= r < jersey.rows):
+        raise ValueError(f"pulled stitch ({c}, {r}) lies outside the "
+                         f"{jersey.cols} x {jersey.rows} stitches of the fabric")
+    fab = jersey_fabric(jersey, hold_top=True)
+    fab.loads = (np.array([r]), jersey.heads(r)[[c]],
+                 np.asarray(force, dtype=float).reshape(1, 3))
+    return fab
+
+
 def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4,
-                tilt=0.0):
-    """The ``Fabric`` of a scene."""
+                tilt=0.0, pull=None):
+    """The ``Fabric`` of a scene; ``pull`` = (stitch, force) for "pulled"."""
     if scene == "hanging":
         return tilted(jersey_fabric(jersey, hold_top=True), tilt)
+    if scene == "pulled":
+        return pulled(jersey, *pull)
     if scene == "freefall":
         return jersey_fabric(jersey)
     if scene == "catenary":

@@ -4,22 +4,32 @@
 
 Every ``output_every`` steps the driver prints a progress line (step, t,
 Newton/KSP iterations, energies, constraint violation), appends the yarn
-centrelines to an XDMF/HDF5 time series and, at the requested snapshot
-times, draws a PNG. A non-finite state, a failed Newton solve or a constraint
-drift above ``drift_tol`` stops the run with one line naming the step, the
-time and the quantity; everything written so far stays on disk.
+centrelines to the time series and, at the requested snapshot times, draws a
+PNG; every ``checkpoint_every`` steps it writes a checkpoint. The files are
+the business of ``output.OutputDirectory``; the driver only calls it.
+
+Every step ends with one cheap collective check (the state finite, the
+constraint drift C ε − d within ``drift_tol``, no stop signal pending), so a
+failure is reported at the step where it happened and a bad state never
+reaches a checkpoint. A failure stops the run with one line naming the step,
+the time and the quantity (``SimulationError``); a PETSc error inside a step
+names the solver, the error and the option to change; SIGINT/SIGTERM finish
+the step, write a final checkpoint and the summary, and raise
+``interrupts.Interrupted``. Everything written so far stays on disk.
 """
 
-import json
 import os
+import sys
 import time
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from solvers.integrators import SimulationError
+from solvers.petsc_errors import petsc_failure
 
-from . import bspline, io
+from . import bspline, interrupts, io, output
 
 __all__ = ["Simulation", "SimulationError"]
 
@@ -31,22 +41,38 @@ class Simulation:
     ----------
     system : FullModel or ReducedModel
     integrator : solvers.integrators.SymplecticEuler or BackwardEuler
-    out : str or None
-        Output directory (None: write nothing).
+    out : str, output.OutputDirectory or None
+        Output directory (None: write nothing). A path is claimed here and
+        released by ``close``; a directory object stays its owner's.
+    problem : dict
+        The problem's description (scene, sizes, material …); completed by
+        ``fingerprint`` it is what a checkpoint must agree on.
+    command : list of str
+        The command line, to print how to continue after an interrupt.
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
-                 view="oblique"):
-        self.system, self.integrator, self.out, self.scene = system, integrator, out, scene
+                 view="oblique", problem=None, command=None, adapt=None,
+                 animation=""):
+        self.system, self.integrator, self.scene = system, integrator, scene
+        self.comm = system.comm
+        self.output = out
+        if isinstance(out, str):
+            self.output = output.OutputDirectory(self.comm, out).claim()
+        self.own_output = isinstance(out, str)
+        self.out = self.output.path if self.output else None
+        self.problem, self.command = dict(problem or {}), command or sys.argv
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
-        self.verbose, self.view = verbose, view
-        self.comm = system.comm
+        self.verbose, self.view, self.animation = verbose, view, animation
+        self.adapt = adapt          # called after every step (knitfem.adapt)
         self.x, self.v = system.rest_state(), system.rest_state()
         self.v.zeroEntries()
         self.t, self.step_count, self.stats = 0.0, 0, {"newton": 0, "ksp": 0}
-        self.series = None
+        self.t0, self.step0 = 0.0, 0        # t = t0 + (step − step0) dt
+        self.series, self.series_from = None, None
+        self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
         self.weights = self.full.m.createVecLeft()
         one = self.full.m.createVecRight()
@@ -57,8 +83,30 @@ class Simulation:
         self.r = system.C.createVecLeft()
         self.rf = self.full.C.createVecLeft()
         self.Mv = system.M.createVecLeft()
+        self.frames, self.movie = [], []
         self.initial_lowest = None
-        self.frames = []
+        self.rest_measures()
+        self.problem = self.fingerprint()
+
+    def rest_measures(self):
+        """Lowest point of the initial (rest) state."""
+        _, pts = self.geometry()
+        if self.comm.rank == 0:
+            self.initial_lowest = float(pts[..., 1].min())
+
+    def fingerprint(self):
+        """What a checkpoint must agree on to be continued by this run: the
+        problem's description, the model, integrator, dt, size, a digest of
+        the rest geometry and the version (collective)."""
+        import hashlib
+
+        rest = self.system.gather_points(self.system.rest_state())
+        digest = hashlib.sha256(np.ascontiguousarray(rest).tobytes()).hexdigest() \
+            if rest is not None else None
+        return dict(self.problem, model=self.system.kind,
+                    integrator=self.integrator.name, dt=self.integrator.dt,
+                    unknowns=self.x.getSize(), version=output.version(),
+                    geometry=self.comm.tompi4py().bcast(digest, root=0)[:16])
 
     # -- measures ------------------------------------------------------------
     def centroid(self, eps):
@@ -99,136 +147,249 @@ class Simulation:
         return os.path.join(self.out, name)
 
     def write_output(self, P, pts):
-        """A frame of the XDMF series, and the snapshots now due (every rank
-        drops them from its list; rank 0 writes)."""
+        """A frame of the time series, and the snapshots now due (every rank
+        drops them from its list; rank 0 writes, every rank learns of an I/O
+        failure)."""
         due = []
         while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
             due.append(self.snapshots.pop(0))
-        if self.out is None or self.comm.rank:
+        if self.output is None:
             return
+        if self.comm.rank == 0:
+            self.frames += [(f"t = {ts:g} s", P) for ts in due]
+        self.output.rank0(self._write_frame, P, due)
+
+    def _write_frame(self, P, due):
         if self.series is None:
+            keep, note = self.series_from or (None, "")
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
-                                              self.full.fabric.radius)
-        self.series.write(self.t, P)
+                                              self.full.fabric.radius, keep, note)
+        self.series.write(self.step_count, self.t, P)
+        if self.animation:
+            self.movie.append((self.t, P))
         for ts in due:
-            self.frames.append((f"t = {ts:g} s", P))
             io.draw(self._path(f"{self.scene}_t{ts:g}s.png"), P,
                     self.full.fabric.radius, view=self.view,
-                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s",
-                    extent=self.extent)
+                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s")
 
     def write_panels(self):
-        """The snapshots of this run side by side in one PNG (rank 0)."""
-        if self.out is None or self.comm.rank or not self.frames:
+        """The snapshots of this run side by side in one PNG, in one scale
+        that fits them all, and the animation of the output frames (rank 0)."""
+        if self.output is None:
             return
-        titles, frames = zip(*self.frames)
-        io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
-                       self.full.fabric.radius, titles, view=self.view,
-                       extent=self.extent)
-        self.frames = []
+        self.output.rank0(self._write_panels)
+        self.frames, self.movie = [], []
+
+    def _write_panels(self):
+        if self.frames:
+            titles, frames = zip(*self.frames)
+            io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
+                           self.full.fabric.radius, titles, view=self.view)
+        if len(self.movie) > 1:
+            times, frames = zip(*self.movie)
+            io.animate(self._path(self.animation), times, frames,
+                       self.full.fabric.radius, view=self.view,
+                       title=f"{self.scene}, {self.system.kind} model")
 
     def checkpoint(self):
-        """HDF5 checkpoint of everything needed to continue bit-exactly."""
-        import h5py
+        """Write a checkpoint of everything needed to continue (collective);
+        returns its path."""
+        mpi = self.comm.tompi4py()
+        xs = mpi.gather(self.x.getArray(readonly=True), root=0)
+        vs = mpi.gather(self.v.getArray(readonly=True), root=0)
+        # an integrator's own state (same on every rank), e.g. its step size
+        state = getattr(self.integrator, "state", None)
+        extra = dict(initial_lowest=self.initial_lowest, t0=self.t0,
+                     step0=self.step0, integrator=state() if state else None,
+                     restarted_from=self.restarted_from)
+        ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
+                                 self.step_count, self.problem, self.stats,
+                                 extra, self.frames) if self.comm.rank == 0 else None
+        path = self.output.write_checkpoint(ckpt)
+        self.last_checkpoint = (path, self.step_count)
+        return path
 
-        xs = self.comm.tompi4py().gather(self.x.getArray(readonly=True), root=0)
-        vs = self.comm.tompi4py().gather(self.v.getArray(readonly=True), root=0)
-        if self.comm.rank == 0:
-            tmp = self._path("checkpoint.h5.tmp")
-            with h5py.File(tmp, "w") as f:
-                f["x"], f["v"] = np.concatenate(xs), np.concatenate(vs)
-                f.attrs.update(t=self.t, step=self.step_count, kind=self.system.kind,
-                               scene=self.scene, dt=self.integrator.dt,
-                               options=json.dumps(PETSc.Options().getAll()))
-            os.replace(tmp, self._path("checkpoint.h5"))
+    def restart(self, path, change=()):
+        """Continue from a checkpoint written by ``checkpoint`` (collective).
 
-    def restart(self, path):
-        """Continue from an HDF5 checkpoint written by ``checkpoint``."""
-        import h5py
-
+        The checkpoint's fingerprint must equal this run's except for the
+        entries in ``change`` (KnitError otherwise). A changed dt keeps t
+        continuous. Into the checkpoint's own directory the time series keeps
+        its frames up to the checkpoint and goes on; elsewhere a new series
+        notes where it continues from.
+        """
         from .options import KnitError
 
+        mine = self.problem
+        err = ckpt = None
+        if self.comm.rank == 0:
+            try:
+                ckpt = output.Checkpoint.load(path)
+                ckpt.compare(path, mine, change)
+            except KnitError as e:
+                err = str(e)
+        mpi = self.comm.tompi4py()
+        err = mpi.bcast(err, root=0)
+        if err:
+            raise KnitError(err)
+        ckpt = mpi.bcast(ckpt, root=0)
+        # one step from rest, thrown away, makes the solver's choices that
+        # depend on the first matrix (MUMPS's analysis: pivot order, scaling)
+        # those of the uninterrupted run, so the restart continues bit-exactly
+        # (if that step fails, as after a change of dt it may, so be it)
+        x, v = self.x.copy(), self.v.copy()
         try:
-            with h5py.File(path, "r") as f:
-                x, v = f["x"][...], f["v"][...]
-                t, step, kind = f.attrs["t"], int(f.attrs["step"]), f.attrs["kind"]
-        except (OSError, KeyError) as err:
-            raise KnitError(f"-knit_restart {path}: not a knitfem checkpoint "
-                            f"({err})") from None
-        if kind != self.system.kind or len(x) != self.x.getSize():
-            raise KnitError(f"-knit_restart {path}: checkpoint holds a {kind} model "
-                            f"with {len(x)} unknowns, this run a {self.system.kind} "
-                            f"model with {self.x.getSize()}")
+            self.integrator.step(0.0, x, v)
+        except (SimulationError, PETSc.Error):
+            pass
+        x.destroy()
+        v.destroy()
         lo, hi = self.x.getOwnershipRange()
-        self.x.getArray()[:], self.v.getArray()[:] = x[lo:hi], v[lo:hi]
-        self.t, self.step_count = float(t), step
+        self.x.getArray()[:], self.v.getArray()[:] = ckpt.x[lo:hi], ckpt.v[lo:hi]
+        self.t, self.step_count = ckpt.t, ckpt.step
+        self.stats.update(ckpt.stats)
+        self.frames = ckpt.frames if self.comm.rank == 0 else []
+        extra = ckpt.extra
+        self.initial_lowest = extra.get("initial_lowest", self.initial_lowest)
+        self.t0, self.step0 = extra.get("t0", 0.0), extra.get("step0", 0)
+        if ckpt.fingerprint.get("dt") != mine["dt"]:
+            self.t0, self.step0 = self.t, self.step_count
+        set_state = getattr(self.integrator, "set_state", None)
+        if set_state and extra.get("integrator") is not None and \
+                ckpt.fingerprint.get("integrator") == mine["integrator"]:
+            set_state(extra["integrator"])
+        self.restarted_from = [os.path.abspath(path), ckpt.step, ckpt.t]
         self.snapshots = [s for s in self.snapshots if s > self.t + 1e-9]
+        same = self.out and os.path.realpath(os.path.dirname(os.path.abspath(path))) \
+            == os.path.realpath(self.out)
+        self.series_from = (ckpt.step, "") if same else (
+            None, f"continues {path} (step {ckpt.step}, t = {ckpt.t:g} s)")
 
     def progress(self, m):
+        """One line: step, t, running totals of Newton and KSP iterations,
+        energies, drift, wall time so far and the time left at this pace."""
         if self.verbose:
+            elapsed = time.perf_counter() - self.clock[0]
+            done = (self.t - self.clock[1]) / (self.clock[2] - self.clock[1])
+            left = elapsed * (1 - done) / done if done > 0 else float("nan")
             PETSc.Sys.Print(
-                f"step {self.step_count:6d}  t {self.t:8.4f}  newton "
-                f"{self.stats['newton']:4d}  ksp {self.stats['ksp']:5d}  "
-                f"kinetic {m['kinetic_energy']:.4e}  elastic "
-                f"{m['elastic_energy']:.4e}  |C x - d| "
-                f"{m['max_constraint_violation']:.2e}", comm=self.comm)
+                f"step {self.step_count:6d}  t {self.t:.4f} s  total its: newton "
+                f"{self.stats['newton']:5d} ksp {self.stats['ksp']:5d}  E_kin "
+                f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
+                f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
+                f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
 
     # -- the loop ------------------------------------------------------------
-    def check(self, m):
-        finite = np.isfinite([m["kinetic_energy"], m["elastic_energy"]]).all() and \
-            np.isfinite(self.x.norm())
-        if not finite:
+    def guard(self):
+        """After every step, one reduction (collective): raise SimulationError
+        if the state is not finite or C ε − d exceeds ``drift_tol``; return
+        the stop signal any rank received (0: none)."""
+        s = self.system
+        x, v = self.x.getArray(readonly=True), self.v.getArray(readonly=True)
+        bad = not (np.isfinite(x).all() and np.isfinite(v).all())
+        drift = 0.0
+        if not bad:
+            s.C.mult(self.x, self.r)
+            self.r.axpy(-1.0, s.d)
+            r = self.r.getArray(readonly=True)
+            drift = float(np.abs(r).max()) if r.size else 0.0
+        flags = np.array([float(bad), drift, float(interrupts.pending())])
+        self.comm.tompi4py().Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+        bad, drift, signum = flags
+        if bad or not np.isfinite(drift):
             raise SimulationError("the state is not finite (NaN or inf)")
-        if m["max_constraint_violation"] > self.drift_tol:
-            raise SimulationError(
-                f"constraint drift {m['max_constraint_violation']:.3e} m exceeds "
-                f"-knit_drift_tol {self.drift_tol:g}")
+        if drift > self.drift_tol:
+            raise SimulationError(f"constraint drift {drift:.3e} m exceeds "
+                                  f"-knit_drift_tol {self.drift_tol:g}")
+        return int(signum)
+
+    def after_step(self, signum):
+        """Checkpoint when due; on a stop signal a final checkpoint, the
+        summary marked interrupted, and ``Interrupted`` with the restart
+        command (collective)."""
+        due = self.checkpoint_every and self.step_count % self.checkpoint_every == 0
+        if self.output is not None and (due or signum):
+            self.checkpoint()
+        if not signum:
+            return
+        name = interrupts.Interrupted(signum).args[0].split()[-1]
+        self.wall_time = time.perf_counter() - self.start
+        self.write_summary(self.summary(), f"interrupted by {name}")
+        where = f"step {self.step_count}, t = {self.t:.6g} s"
+        if self.output is None:
+            raise interrupts.Interrupted(signum, f"interrupted by {name} at {where}; "
+                                         "no output directory, nothing to restart")
+        path = self.last_checkpoint[0]
+        raise interrupts.Interrupted(
+            signum, f"interrupted by {name} at {where}; checkpoint {path}; continue "
+            f"with: {output.restart_command(self.command, path, self.comm.size)}")
+
+    def solver_prefix(self):
+        for name in ("snes", "ksp"):
+            obj = getattr(self.integrator, name, None)
+            if obj is not None:
+                return obj.getOptionsPrefix() or ""
+        return ""
+
+    def failure(self, err):
+        """The one-line SimulationError for ``err`` at the step in progress."""
+        if isinstance(err, PETSc.Error):
+            err = petsc_failure(err, self.solver_prefix())
+        kept = "" if self.last_checkpoint is None else (
+            f"; last checkpoint {self.last_checkpoint[0]} (step "
+            f"{self.last_checkpoint[1]})")
+        return SimulationError(f"step {self.at[0]}, t = {self.at[1]:.6g} s: "
+                               f"{err}{kept}")
 
     def run(self, t_end):
-        """Integrate to t_end. Returns the summary dict; raises SimulationError."""
+        """Integrate to t_end. Returns the summary dict; raises SimulationError
+        (one line: step, time, quantity) or interrupts.Interrupted."""
         dt = self.integrator.dt
         nsteps = int(round((t_end - self.t) / dt))
-        start = time.perf_counter()
-        P, pts = self.geometry()
-        if self.comm.rank == 0:
-            # room for the rest shape to swing or sag down by its own size
-            lo, hi = pts.reshape(-1, 3).min(0), pts.reshape(-1, 3).max(0)
-            span, size = hi - lo, (hi - lo).max()
-            self.extent = (lo - [0.15 * span[0], size, 0.2 * size],
-                           hi + [0.15 * span[0], 0.1 * size, 0.2 * size])
-            if self.initial_lowest is None:
-                self.initial_lowest = pts[..., 1].min()
-        if self.step_count == 0:
-            self.write_output(P, pts)
+        start = self.start = time.perf_counter()
+        self.clock = (start, self.t, t_end)
+        self.at = (self.step_count, self.t)
         stage = PETSc.Log.Stage("Time stepping")
+        interrupts.hold(True)
         try:
-            for _ in range(nsteps):
+            if self.step_count == 0:
+                if self.output is not None:     # no summary of an earlier run
+                    self.output.rank0(self.output.remove, "summary.json")
+                self.write_output(*self.geometry())
+            for n in range(nsteps):
+                self.at = (self.step_count + 1, self.t + dt)
                 stage.push()
                 try:
                     st = self.integrator.step(self.t, self.x, self.v)
                 finally:
                     stage.pop()
                 self.step_count += 1
-                self.t = self.step_count * dt
+                self.t = self.t0 + (self.step_count - self.step0) * dt
                 for k in st:
                     self.stats[k] += st[k]
-                last = self.step_count == int(round(t_end / dt))
+                if self.adapt is not None:
+                    self.adapt(self)
+                signum = self.guard()
+                last = n == nsteps - 1
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
                     m = self.measures()
-                    self.check(m)
                     self.progress(m)
                     self.write_output(*self.geometry())
-                if self.checkpoint_every and self.out and \
-                        self.step_count % self.checkpoint_every == 0:
-                    self.checkpoint()
-        except SimulationError as err:
+                self.after_step(signum)
+            self.wall_time = time.perf_counter() - start
+            summary = self.summary()
+            self.write_summary(summary, "completed")
+        except (SimulationError, output.OutputError, PETSc.Error) as err:
+            failure = self.failure(err)
+            self.write_summary(dict(steps=self.step_count, t_end=self.t,
+                                    newton_iterations=self.stats["newton"],
+                                    ksp_iterations=self.stats["ksp"]),
+                               f"failed: {failure}", quiet=True)
+            raise failure from None
+        finally:
+            interrupts.hold(False)
             self.close()
-            raise SimulationError(f"step {self.step_count + 1}, t = "
-                                  f"{self.t + dt:.6g} s: {err}") from None
-        self.wall_time = time.perf_counter() - start
-        summary = self.summary()
-        self.close()
         return summary
 
     def summary(self):
@@ -248,13 +409,26 @@ class Simulation:
                        sag=float(self.initial_lowest - low[1]),
                        tip=bspline.curve_points(P[0], np.array([P.shape[1] - 3.0]))[0]
                        .tolist())
-            if self.out:
-                with open(self._path("summary.json"), "w") as f:
-                    json.dump(rec, f, indent=1)
         return self.comm.tompi4py().bcast(rec, root=0)
 
+    def write_summary(self, rec, status, quiet=False):
+        """summary.json (atomically), with how the run ended and, after a
+        restart, the checkpoint it continued (collective). ``quiet``: a
+        failure to write it is not reported (a failure is being already)."""
+        if self.output is None:
+            return
+        try:
+            self.output.write_json("summary.json", dict(
+                rec, status=status, restarted_from=self.restarted_from))
+        except output.OutputError:
+            if not quiet:
+                raise
+
     def close(self):
-        self.write_panels()
-        if self.series is not None:
-            self.series.close()
+        """Draw the snapshot panel and release a directory claimed here."""
+        try:
+            self.write_panels()
+        finally:
             self.series = None
+            if self.own_output:
+                self.output.release()

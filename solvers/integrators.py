@@ -1,4 +1,4 @@
-"""Time integrators and the static solver for a constrained mechanical system.
+"""Time integrators for a constrained mechanical system.
 
     M ε̈ = Q(ε, ε̇) + Cᵀλ,   C ε = d.
 
@@ -15,10 +15,11 @@ at the round-off of the linear solves.
 import numpy as np
 from petsc4py import PETSc
 
-from .saddle import SaddlePoint, SolverFailure, saddle_ksp, solve_saddle
+from .reasons import reason_name
+from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+                     solve_saddle)
 
-__all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "StaticSolver",
-           "INTEGRATORS"]
+__all__ = ["SimulationError", "SymplecticEuler", "BackwardEuler", "INTEGRATORS"]
 
 EV_SOLVE = PETSc.Log.Event("knitSaddleSolve")
 EV_FACTOR = PETSc.Log.Event("knitFactor")
@@ -230,93 +231,22 @@ class BackwardEuler:
             scale = self.Mv.norm() + h * s.Qg.norm()
             floor = 1e-14 * s.total_mass * s.fabric.radius / h
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
-        solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+        try:
+            solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+        except SolverFailure as err:
+            raise SimulationError(f"{err}, h = {h:.3g} s") from None
         reason = self.snes.getConvergedReason()
         stats["newton"] += self.snes.getIterationNumber()
         stats["ksp"] += self.snes.getLinearSolveIterations()
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+            raise SimulationError(f"{ksp_failure(self.snes.getKSP())}, h = {h:.3g} s")
         if reason < 0:
-            raise SimulationError(f"Newton did not converge (SNES reason {reason}, "
+            raise SimulationError(f"Newton did not converge ({reason_name(self.snes)}, "
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
                                   f"h = {h:.3g} s)")
         self._unpack(self.z)
         self.v.copy(v)
         x.axpy(h, v)
-
-
-class StaticSolver:
-    """Static equilibrium −Q(ε, 0) + Cᵀμ = 0, C ε = d by Newton (``-static_``)
-    with load stepping: gravity is applied in ``steps`` equal increments."""
-
-    name, dt = "static", 0.0
-
-    def __init__(self, system, steps=5):
-        self.system, self.steps = system, steps
-        K = system.stiffness(system.rest_state())
-        self.A = K.duplicate(copy=True)
-        self.saddle = SaddlePoint(self.A, system.C,
-                                  dense=getattr(system, "dense_saddle", False))
-        self.snes = PETSc.SNES().create(comm=system.comm)
-        self.snes.setOptionsPrefix("static_")
-        self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
-        self.snes.setFunction(self._residual, self.F)
-        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
-        self.snes.setType("newtonls")
-        self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: 1e-9 * system.fabric.radius))
-        _default("static_", "snes_linesearch_type", "bt")
-        self.snes.setTolerances(rtol=1e-10, atol=1e-50, max_it=50)
-        self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
-        self.snes.setFromOptions()
-        self.x, self.zero = system.M.createVecLeft(), system.M.createVecLeft()
-        self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
-        self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
-        self.load = 1.0
-
-    def _unpack(self, z):
-        u, lam = self.saddle.split(z)
-        self.x.getArray()[:] = u
-        self.mu.getArray()[:] = lam
-
-    def _residual(self, snes, z, F):
-        s = self.system
-        self._unpack(z)
-        s.forces(self.x, self.zero, self.Q)
-        self.Q.axpy(self.load - 1.0, s.Qg)
-        fu, fl = self.saddle.split(F)
-        fu[:] = -self.Q.getArray(readonly=True)
-        if self.saddle.constrained:
-            s.C.multTranspose(self.mu, self.tmp)
-            fu += self.tmp.getArray(readonly=True)
-            s.C.mult(self.x, self.Cx)
-            fl[:] = self.Cx.getArray(readonly=True) - s.d.getArray(readonly=True)
-
-    def _jacobian(self, snes, z, J, P):
-        self._unpack(z)
-        self.system.stiffness(self.x).copy(self.A,
-                                           PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        self.saddle.update()
-
-    def solve(self, x, monitor=None):
-        """Equilibrium from the initial guess x (overwritten). Returns Newton its."""
-        self.saddle.split(self.z)[0][:] = x.getArray(readonly=True)
-        its = 0
-        scale = self.system.Qg.norm()
-        if not PETSc.Options().hasName("static_snes_atol"):
-            self.snes.setTolerances(atol=1e-10 * scale + 1e-300)
-        for i in range(1, self.steps + 1):
-            self.load = i / self.steps
-            self.snes.solve(None, self.z)
-            reason = self.snes.getConvergedReason()
-            its += self.snes.getIterationNumber()
-            if monitor:
-                monitor(i, self.load, self.snes)
-            if reason < 0:
-                raise SimulationError(f"static Newton did not converge at load "
-                                      f"{self.load:.3g} (SNES reason {reason}, |F| = "
-                                      f"{self.snes.getFunctionNorm():.3e})")
-        self._unpack(self.z)
-        self.x.copy(x)
-        return its
 
 
 INTEGRATORS = {"symplectic": SymplecticEuler, "implicit": BackwardEuler}

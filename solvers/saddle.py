@@ -32,7 +32,7 @@ import numpy as np
 from petsc4py import PETSc
 
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
-           "failure_or_retry"]
+           "ksp_failure", "failure_or_retry"]
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -211,6 +211,17 @@ def refactor(ksp, icntl14):
     F.setMumpsCntl(1, cntl1)
 
 
+def ksp_failure(ksp):
+    """One line for a KSP whose last solve did not converge: the solver, its
+    reason by name and the options to change."""
+    prefix = ksp.getOptionsPrefix() or ""
+    name = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items()
+            if isinstance(v, int)}.get(ksp.getConvergedReason())
+    return (f"KSP {ksp.getType()} with PC {ksp.getPC().getType()} did not converge "
+            f"({name}, {ksp.getIterationNumber()} iterations): raise "
+            f"-{prefix}ksp_max_it or change -{prefix}pc_type")
+
+
 def failure_or_retry(ksp, err):
     """After a PETSc error ``err`` in a solve with ``ksp`` (collective).
 
@@ -247,13 +258,8 @@ def failure_or_retry(ksp, err):
             return (f"MUMPS failed with INFOG(1) = {info}, INFO(2) = {more} (MUMPS "
                     f"users' guide, error diagnostics): try "
                     f"-{prefix}pc_factor_mat_solver_type superlu_dist")
-    reason = ksp.getConvergedReason()
-    if reason < 0:
-        name = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items()
-                if isinstance(v, int)}.get(reason, reason)
-        return (f"KSP {ksp.getType()} with PC {pc.getType()} did not converge "
-                f"({name}, {ksp.getIterationNumber()} iterations): raise "
-                f"-{prefix}ksp_max_it or change -{prefix}pc_type")
+    if ksp.getConvergedReason() < 0:
+        return ksp_failure(ksp)
     last = [s.strip() for s in str(err).splitlines() if s.strip()]
     return (f"PETSc error in the {prefix} solve ({last[-1] if last else err}): "
             f"change -{prefix}ksp_type / -{prefix}pc_type")

@@ -31,6 +31,19 @@ def test_dofs_table_paper_case():
     assert rec["scalar_constraints"] == 3 * 2 * 30 * 14
     assert rec["unknowns"] == 10935 + 2520
     assert rec["ratio"] == pytest.approx(13455 / 150)
+    # the hanging scene's held course: 30 loop heads, what `knitfem run` counts
+    assert rec["fixed_points_hanging"] == 30
+    assert rec["unknowns_hanging"] == 13455 + 3 * 30
+
+
+def test_dofs_and_run_count_the_same_unknowns_by_name(tmp_path):
+    d = knitfem("dofs", "-knit_rows", "3", "-knit_cols", "2")
+    r = knitfem("run", "-knit_rows", "3", "-knit_cols", "2", "-knit_t_end", "0.01",
+                "-knit_snapshots", "", "-o", str(tmp_path))
+    assert d.returncode == 0 and r.returncode == 0, d.stderr + r.stderr
+    total = int(re.search(r"= (\d+) unknowns", d.stdout).group(1))
+    free = int(re.search(r"Scalar unknowns total\s+(\d+)", d.stdout).group(1))
+    assert f"= {total} unknowns" in r.stdout and total == free + 3 * 2
 
 
 def test_dofs_table_text():
@@ -55,7 +68,8 @@ def test_bad_input_one_line_exit_2(args, word):
 
 def test_unknown_command():
     p = knitfem("fly")
-    assert p.returncode == 2 and len(p.stdout.strip().splitlines()) == 1
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1
+    assert "'fly'" in p.stderr and "Traceback" not in p.stderr
 
 
 def test_pattern_writes_geometry_and_picture(tmp_path):
@@ -85,7 +99,7 @@ def test_deform_metrics(tmp_path):
 def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
     p = knitfem("run", "-knit_scene", "hanging", "-knit_rows", "2", "-knit_cols", "2",
                 "-knit_t_end", "0.04", "-knit_snapshots", "0.02,0.04", "-o",
-                str(tmp_path), "-log_view")
+                str(tmp_path), "-knit_animation", "hanging.gif", "-log_view")
     assert p.returncode == 0, p.stderr
     stages = re.findall(r"^\s*\d+:\s+([^:]+):", p.stdout, flags=re.M)
     assert {"Model set-up", "Solver set-up", "Time stepping"} <= set(stages)
@@ -96,5 +110,116 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
         assert key in rec
     assert rec["steps"] == 4 and rec["sag"] > 0     # the tilted swatch falls
     for name in ("hanging_t0.02s.png", "hanging_t0.04s.png", "hanging_snapshots.png",
-                 "yarns.xdmf", "yarns.h5"):
+                 "yarns.xdmf", "yarns/mesh.h5", "yarns/00000004.h5"):
         assert (tmp_path / name).stat().st_size > 0
+    from PIL import Image
+    with Image.open(tmp_path / "hanging.gif") as gif:    # t = 0, 0.02, 0.04 s
+        assert gif.n_frames == 3
+
+
+def test_usage_lists_commands_with_an_example_each():
+    for args in ((), ("--help",), ("-help",)):
+        p = knitfem(*args)
+        assert p.returncode == 0, p.stderr
+        for command in ("dofs", "pattern", "run", "deform"):
+            assert re.search(rf"^\s+{command}\s", p.stdout, flags=re.M)
+            assert re.search(rf"^\s+knitfem {command} -knit_", p.stdout, flags=re.M)
+        assert "Traceback" not in p.stderr and "Petsc Release" not in p.stdout
+
+
+@pytest.mark.parametrize("command", ["run", "dofs", "pattern", "deform"])
+def test_command_help_lists_options_and_does_not_run(tmp_path, command):
+    p = knitfem(command, "-help", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert lines[0] == f"knitfem {command} options:"
+    ours = [ln for ln in lines[1:] if ln.startswith("  -")]
+    assert all(re.match(r"  -(knit_\w+|o) <[^>]*>: \S", ln) for ln in ours)
+    assert "-knit_rows" in p.stdout and "Petsc Release" not in p.stdout
+    assert list(tmp_path.iterdir()) == []                     # nothing written
+    if command != "dofs":
+        assert "  -o <out/" in p.stdout
+    if command == "run":
+        assert "-knit_radius <0.0005>: yarn radius [m]" in p.stdout
+        assert "-knit_lod" in p.stdout and "-static_" in p.stdout
+
+
+@pytest.mark.parametrize("args,option,nearest", [
+    (["dofs", "-knit_rwos", "3"], "-knit_rwos", "-knit_rows"),
+    (["run", "-knit_scnee", "catenary"], "-knit_scnee", "-knit_scene"),
+    (["pattern", "-knit_cols", "2", "-knit_radis", "1e-3"], "-knit_radis",
+     "-knit_radius"),
+    (["dofs", "-bench_sizes", "7x7"], "-bench_sizes", None),
+    (["run", "-help", "-knit_tilet", "0"], "-knit_tilet", "-knit_tilt"),
+])
+def test_misspelt_option_is_an_error_naming_the_nearest(tmp_path, args, option,
+                                                        nearest):
+    p = knitfem(*args, cwd=tmp_path)
+    assert p.returncode == 2
+    err = p.stderr.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in p.stderr
+    assert f"unknown option {option}" in err[0]
+    if nearest:
+        assert f"did you mean {nearest}?" in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_options_read_only_for_some_scenes_or_models_are_not_flagged(tmp_path):
+    """-knit_span (catenary), -knit_lod (reduced) and -knit_tilt (hanging)
+    with a full-model static cantilever: declared, so accepted."""
+    p = knitfem("run", "-knit_scene", "cantilever", "-knit_static", "-knit_EI",
+                "1.962e-4", "-knit_EA", "1e4", "-knit_rho", "1e-3", "-knit_span",
+                "0.05", "-knit_lod", "4,4", "-knit_tilt", "0", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "unknown" not in p.stderr and "warning" not in p.stderr
+
+
+def test_unused_petsc_option_is_a_warning():
+    p = knitfem("dofs", "-knit_rows", "2", "-knit_cols", "2", "-ksp_tpye", "gmres",
+                "-log_view", ":/dev/null")
+    assert p.returncode == 0, p.stderr
+    assert "Scalar unknowns total" in p.stdout
+    warning = [ln for ln in p.stderr.splitlines() if "warning" in ln]
+    assert len(warning) == 1 and "-ksp_tpye" in warning[0]
+    assert "-log_view" not in warning[0] and "-skip_petscrc" not in warning[0]
+
+
+def readme_commands():
+    """The knitfem command lines of the README's code blocks."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    text = open(os.path.join(root, "README.md")).read()
+    blocks = re.findall(r"^```\n(.*?)^```", text, flags=re.M | re.S)
+    lines = [ln.split("#")[0].strip() for b in blocks for ln in b.splitlines()]
+    assert "source .venv/bin/activate" in lines
+    return [ln for ln in lines if re.match(r"(mpirun -n \d+ )?knitfem ", ln)]
+
+
+def test_readme_commands_run_as_written_after_activation(tmp_path):
+    """Every README command line, on the PATH that `source
+    .venv/bin/activate` gives: its options are known and parse (run with
+    -help appended); the quick ones run to the end."""
+    commands = readme_commands()
+    assert len(commands) >= 7
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep
+               + os.environ["PATH"], OMPI_ALLOW_RUN_AS_ROOT="1",
+               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
+    quick = ("knitfem dofs", "knitfem pattern")
+    for line in commands:
+        words = line.split()
+        for run_it in (False, True) if line.startswith(quick) else (False,):
+            p = subprocess.run(words + ([] if run_it else ["-help"])
+                               + ["-skip_petscrc"], capture_output=True,
+                               text=True, env=env, cwd=tmp_path, timeout=300)
+            assert p.returncode == 0, (line, p.stderr)
+            assert "unknown" not in p.stderr and "warning" not in p.stderr, line
+
+
+def test_symplectic_step_above_the_stable_step_fails_at_once(tmp_path):
+    p = knitfem("run", "-knit_integrator", "symplectic", "-knit_dt", "1e-3",
+                "-o", str(tmp_path))
+    assert p.returncode == 3 and "Traceback" not in p.stderr
+    h = float(re.search(r"2/omega_max = (\S+) s", p.stderr).group(1))
+    assert 1e-7 < h < 1e-5                       # the default yarn's axial waves
+    use = re.search(r"use -knit_dt (\S+)", p.stderr).group(1)
+    assert float(use) < h

@@ -49,6 +49,42 @@ def test_reduced_tangent_equals_explicit_product(pair, dense):
     assert np.allclose(K, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("lod", [(5, 5), (6, 7)])
+def test_grouped_tangent_equals_ptap(lod):
+    """The compiled Γᵀ K Γ (``GroupedTangent``: points grouped by patch, some
+    with neighbours in other patches) equals MatPtAP to 1e-12."""
+    full, red = models(SELF, jersey(4, 3, hold_top=True), lod=lod)
+    groups = red.dense.args[5]
+    assert len(groups) - 1 > (lod[0] - 3) * (lod[1] - 3)   # boundary groups too
+    alpha = red.rest_state()
+    alpha.getArray()[:] += 2e-4 * np.random.default_rng(3).standard_normal(
+        alpha.getLocalSize())
+    K = to_scipy(red.stiffness(alpha)).toarray()
+    ref = red.full.stiffness(red.full_state(alpha)).PtAP(red.embedding.Gamma)
+    ref = to_scipy(ref).toarray()
+    assert np.abs(K - ref).max() <= 1e-12 * np.abs(ref).max()
+    red.destroy()
+    full.destroy()
+
+
+def test_reduced_forces_equal_projected_full_forces():
+    """Q^V = Γᵀ Q(Γα, Γα̇), with damping: the applied forces formed on the
+    reduced side (Γᵀ Q_g − c_d M^V α̇) equal the projected full ones."""
+    full, red = models(SELF, jersey(3, 3, hold_top=True), Material(damping=3.0))
+    rng = np.random.default_rng(4)
+    alpha, alphadot = red.rest_state(), red.rest_state()
+    alpha.getArray()[:] += 1e-4 * rng.standard_normal(alpha.getLocalSize())
+    alphadot.getArray()[:] = 1e-2 * rng.standard_normal(alpha.getLocalSize())
+    Q, Qf, ref = alpha.duplicate(), full.M.createVecLeft(), alpha.duplicate()
+    red.forces(alpha, alphadot, Q)
+    full.forces(red.full_state(alpha), red.full_state(alphadot), Qf)
+    red.embedding.Gamma.multTranspose(Qf, ref)
+    assert np.allclose(Q.getArray(), ref.getArray(), rtol=0,
+                       atol=1e-12 * np.abs(ref.getArray()).max())
+    red.destroy()
+    full.destroy()
+
+
 def test_total_mass_kept(pair):
     full, red = pair
     assert to_scipy(red.m).sum() == pytest.approx(to_scipy(full.m).sum(), rel=1e-13)

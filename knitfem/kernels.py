@@ -1,0 +1,116 @@
+"""Yarn kernels behind one switch: compiled loops (default) or the numpy reference.
+
+``-knit_kernels compiled`` runs the loops over elements × quadrature points of
+``knitfem/_compiled.pyx`` (Cython, built by ``pip install -e .``, i.e. ``make
+setup``); ``-knit_kernels numpy`` runs the vectorised reference of
+``knitfem.yarn``. Both compute, for the elements of a ``YarnElements``,
+
+    add_gradient(x, out, scale)          out += scale · ∂E/∂p            (ncp, 3)
+    hessian_values(x, slot, values)      values = Σ_e K_e, K_e[m, n] added at
+                                         values[slot[e, m, n]]  (CSR values)
+    element_gradient(x), element_hessian(x)   (ne, 12), (ne, 12, 12)
+
+with E = E_s + E_b, and the same mathematics (``knitfem.yarn``'s docstring);
+the tests hold them equal to 1e-12 relative. x is (ncp, 3), C-contiguous
+(a view of a PETSc Vec's array will do).
+"""
+
+import numpy as np
+
+from .options import KnitError
+
+__all__ = ["KINDS", "yarn_kernels", "compiled_module"]
+
+KINDS = ("compiled", "numpy")
+
+
+def compiled_module():
+    """The compiled extension ``knitfem._compiled``, or a KnitError saying how
+    to build it."""
+    try:
+        from . import _compiled
+    except ImportError as err:
+        raise KnitError(f"the compiled kernels are not built ({err}): run `make "
+                        "setup` (or `pip install -e .`), or use -knit_kernels "
+                        "numpy") from None
+    return _compiled
+
+
+class NumpyKernels:
+    """The vectorised reference of ``YarnElements`` (numpy, bincount)."""
+
+    kind = "numpy"
+
+    def __init__(self, elements):
+        self.elements = elements
+
+    def add_gradient(self, x, out, scale=1.0):
+        out += scale * self.elements.gradient(x)
+
+    def hessian_values(self, x, slot, values):
+        H = self.elements.element_hessian(x)
+        values[:] = np.bincount(slot.ravel(), weights=H.ravel(), minlength=len(values))
+
+    def element_gradient(self, x):
+        return self.elements.element_gradient(x)
+
+    def element_hessian(self, x):
+        return self.elements.element_hessian(x)
+
+
+class CompiledKernels:
+    """The loops of ``knitfem._compiled`` on the arrays of a ``YarnElements``."""
+
+    kind = "compiled"
+
+    def __init__(self, elements):
+        el = elements
+        self.module = compiled_module()
+        self.ne = el.ne
+        self.args = (np.ascontiguousarray(el.conn, dtype=np.int64),
+                     np.ascontiguousarray(el.D), np.ascontiguousarray(el.Xp2),
+                     np.ascontiguousarray(el.W), np.ascontiguousarray(el.kappa0),
+                     el.EA, el.EI, el.delta)
+        self.slot = None
+
+    def add_gradient(self, x, out, scale=1.0):
+        self.module.add_gradient(np.ascontiguousarray(x), *self.args, scale, out)
+
+    def hessian_values(self, x, slot, values):
+        if self.slot is not slot:
+            self.slot, self.blocks = slot, block_slots(slot)
+        self.module.hessian_values(np.ascontiguousarray(x), *self.args, *self.blocks,
+                                   values)
+
+    def element_gradient(self, x):
+        out = np.empty((self.ne, 12))
+        self.module.element_gradients(np.ascontiguousarray(x), *self.args, out)
+        return out
+
+    def element_hessian(self, x):
+        out = np.empty((self.ne, 12, 12))
+        self.module.element_hessians(np.ascontiguousarray(x), *self.args, out)
+        return out
+
+
+def block_slots(slot):
+    """(block, stride) of element slots (ne, 12, 12) made of 3 × 3 blocks laid
+    out as rows ``stride`` apart: slot[e, 3a + i, 3b + j] = block[e, a, b] +
+    stride[e, a] i + j (as ``ElementPattern.blocks3`` gives them)."""
+    s = slot.reshape(-1, 4, 3, 4, 3)
+    block = np.ascontiguousarray(s[:, :, 0, :, 0], dtype=np.int64)
+    stride = np.ascontiguousarray(s[:, :, 1, 0, 0] - s[:, :, 0, 0, 0], dtype=np.int64)
+    i, j = np.arange(3)[:, None], np.arange(3)
+    expect = (block[:, :, None, :, None] + stride[:, :, None, None, None]
+              * i[None, None, :, None, :] + j[None, None, None, None, :])
+    if not np.array_equal(s, expect):
+        raise ValueError("element slots are not made of 3 x 3 blocks with "
+                         "unit-stride rows")
+    return block, stride
+
+
+def yarn_kernels(elements, kind="compiled"):
+    """The kernels of ``kind`` (one of ``KINDS``) for ``elements``."""
+    if kind not in KINDS:
+        raise KnitError(f"kernels {kind!r}: expected one of {', '.join(KINDS)}")
+    return (CompiledKernels if kind == "compiled" else NumpyKernels)(elements)

@@ -1,0 +1,420 @@
+"""The mixed model: yarn level in full regions, the bounding volume elsewhere.
+
+The yarn control points are split into a *full* set F (their coordinates
+are unknowns of their own) and an *embedded* set E (ε = Γα as in the
+reduced model). With q = [α; ε_F] the two are one linear map
+
+    ε = Γ_mix q,   Γ̃_mix = [Γ̃_E  0]   (rows of embedded points)
+                           [ 0   I ]   (rows of full points),   Γ_mix = Γ̃_mix ⊗ I₃,
+
+and Lagrange's equations in q are those of the reduced model with Γ_mix in
+place of Γ:
+
+    M_mix q̈ = Γ_mixᵀ Q(Γ_mix q, Γ_mix q̇) + (C Γ_mix)ᵀλ,   (C Γ_mix) q = d,
+    M_mix = Γ_mixᵀ M Γ_mix (PtAP),  tangent Γ_mixᵀ K Γ_mix (PtAP).
+
+Yarn elements that straddle the border are evaluated at ε = Γ_mix q, so
+they are exact. Constraints: fixed points and clamps stay (those touching
+no full point reduced to independent rows, as in the reduced model);
+contacts are kept when one of their two contact points lies in the full
+region — at least half of the B-spline weight of P(s) there comes from full
+control points — and dropped otherwise (the embedding holds those stitches
+together). A contact whose full side carries only a sliver of weight would
+pin a full control point to an embedded yarn with that weight's inverse as
+its lever, which is why it is dropped rather than kept.
+
+Full regions are unions of the volume's patches: stitch ranges given by the
+user are widened to the patches they touch (``VolumeWeights.patches_of``).
+An embedded region made of whole patches determines its volume control
+points as well as the reduced model does (B-splines are locally linearly
+independent on each patch); a patch left with a sliver of embedded points
+does not (a 15x30 jersey in a 13x8 volume with stitches 0:5, courses 0:3
+full: cond(M_mix) 1e19, against 3e8 once widened).
+
+Volume control points that no embedded point depends on are no unknowns
+(every one of them when all points are full: Γ_mix is then the identity and
+the mixed model *is* the full model; with no full point it *is* the reduced
+model). Columns are distributed by rank: rank r owns its share of α (an
+even split) followed by the full control points of its own yarns, so every
+identity row of Γ_mix lies in the rank's diagonal block.
+"""
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from . import bspline, constraints as cons
+from .assembly import create_aij, kron_identity
+from .options import KnitError
+from .pattern import SEGMENTS_PER_STITCH
+
+__all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "stitch_mask",
+           "parse_regions", "regions_from_options", "mixed_from_options"]
+
+EV_MIXED = PETSc.Log.Event("knitMixedSetUp")
+EV_PTAP = PETSc.Log.Event("knitPtAP")
+
+CONTACT_SIDE_FULL = 0.5     # a contact point is full when ≥ this weight is
+
+
+def even_counts(n, size):
+    """n items split evenly over ``size`` ranks: the count of each rank."""
+    return n // size + (np.arange(size) < n % size)
+
+
+class VolumeWeights:
+    """Rows of Γ̃ for every yarn control point of a fabric (every rank holds all).
+
+    cols, vals (N, 32) as ``BoundingVolume.weights``, sorted by column as in
+    ``reduced.Embedding``; patch (N, 2) the volume patch (j1, j2) of each
+    point; ``volume`` the bounding volume.
+    """
+
+    def __init__(self, fabric, volume):
+        X = fabric.X.reshape(-1, 3)
+        try:
+            s1, s2, w3 = volume.embed(X)
+        except ValueError as err:
+            raise KnitError(f"bounding volume: {err}") from None
+        cols, vals = volume.weights(s1, s2, w3)
+        order = np.argsort(cols, axis=1)
+        self.cols = np.take_along_axis(cols, order, 1)
+        self.vals = np.take_along_axis(vals, order, 1)
+        self.patch = np.stack([bspline.locate(s1, volume.n1 - 3)[0],
+                               bspline.locate(s2, volume.n2 - 3)[0]], axis=-1)
+        self.volume = volume
+        self.npatch = (volume.n1 - 3, volume.n2 - 3)
+
+    def patch_mask(self, patches):
+        """Points whose patch (j1, j2) is in ``patches`` (an (n1−3, n2−3) bool
+        array): the full set of a patch-wise refinement."""
+        return np.asarray(patches, bool)[self.patch[:, 0], self.patch[:, 1]]
+
+    def patches_of(self, mask):
+        """The patches holding at least one point of ``mask``, (n1−3, n2−3)."""
+        patches = np.zeros(self.npatch, bool)
+        patches[self.patch[mask, 0], self.patch[mask, 1]] = True
+        return patches
+
+
+class MixedSpace:
+    """Γ̃_mix and Γ_mix = Γ̃_mix ⊗ I₃ for a full-point mask. Collective.
+
+    Parameters
+    ----------
+    comm, layout : the full model's communicator and ``YarnLayout``
+    weights : VolumeWeights
+    full : (N,) bool, the full control points (global numbering)
+    """
+
+    def __init__(self, comm, layout, weights, full):
+        self.comm, self.layout, self.weights = comm, layout, weights
+        self.full = full = np.asarray(full, bool)
+        N, NV, P = layout.ncp, weights.volume.size, comm.size
+        emb = ~full
+        used = np.zeros(NV, bool)
+        used[weights.cols[emb][weights.vals[emb] != 0]] = True
+        self.alpha = np.flatnonzero(used)                  # kept volume points
+        na = even_counts(len(self.alpha), P)
+        cp = layout.yarn_ranges * layout.ncp_per_yarn
+        nf = np.array([full[cp[r]:cp[r + 1]].sum() for r in range(P)])
+        self.counts = na + nf
+        off = np.concatenate([[0], np.cumsum(self.counts)])
+        astart = np.concatenate([[0], np.cumsum(na)])
+        self.ncol, self.ncol_local = off[-1], self.counts[comm.rank]
+        self.na_local, self.col_start = na[comm.rank], off[comm.rank]
+        # global column of every kept volume point and every full point
+        owner = np.repeat(np.arange(P), na)
+        self.volcol = np.full(NV, -1)
+        self.volcol[self.alpha] = off[owner] + np.arange(len(self.alpha)) - astart[owner]
+        owner = np.searchsorted(cp, np.arange(N), side="right") - 1
+        rank_first = np.concatenate([[0], np.cumsum(nf)])[owner]
+        self.fullcol = np.full(N, -1)
+        self.fullcol[full] = (off[owner] + na[owner]
+                              + np.cumsum(full) - 1 - rank_first)[full]
+        # padded mixed rows of every point: (N, 32) columns and weights
+        self.cols = np.where((weights.vals != 0) & emb[:, None],
+                             self.volcol[weights.cols], 0)
+        self.vals = np.where(emb[:, None], weights.vals, 0.0)
+        self.cols[full, 0], self.vals[full, 0] = self.fullcol[full], 1.0
+        lo, hi = layout.cp_start, layout.cp_end
+        csr = self.csr(np.arange(hi - lo), np.arange(lo, hi), np.ones(hi - lo),
+                       hi - lo)
+        n, nc = hi - lo, self.ncol_local
+        self.Gamma_scalar = create_aij(comm, (n, N), (nc, self.ncol), csr)
+        self.Gamma = create_aij(comm, (3 * n, 3 * N), (3 * nc, 3 * self.ncol),
+                                kron_identity(*csr), bsize=3)
+        self.Gamma_scalar.setOptionsPrefix("mixed_Gammascalar_")
+        self.Gamma.setOptionsPrefix("mixed_Gamma_")
+
+    @property
+    def volume(self):
+        return self.weights.volume
+
+    def csr(self, rows, points, w, nrows):
+        """CSR of Σ w · (mixed row of point) into rows: the product c Γ̃_mix of
+        a scalar matrix c given by its entries (rows, points, w)."""
+        r = np.repeat(rows, self.cols.shape[1])
+        v = (w[:, None] * self.vals[points]).ravel()
+        A = sp.csr_matrix((v, (r, self.cols[points].ravel())),
+                          shape=(nrows, max(self.ncol, 1)))
+        A.sum_duplicates()
+        A.eliminate_zeros()
+        A.sort_indices()
+        return A.indptr, A.indices, A.data
+
+    def state(self, eps_points, alpha_points):
+        """Local part of q from all control points (N, 3) and all volume
+        points (NV, 3): q = [α (own share); ε_F (own full points)]."""
+        lo, hi = self.layout.cp_start, self.layout.cp_end
+        a0 = self.col_start
+        mine = (self.volcol >= a0) & (self.volcol < a0 + self.na_local)
+        q = np.empty((self.ncol_local, 3))
+        q[self.volcol[mine] - a0] = alpha_points[mine]
+        q[self.na_local:] = eps_points[lo:hi][self.full[lo:hi]]
+        return q.ravel()
+
+    def destroy(self):
+        self.Gamma.destroy()
+        self.Gamma_scalar.destroy()
+
+
+def independent_rows(rows, rhs):
+    """Rows (k, n) and right-hand sides (k, 3) reduced to an independent set
+    with the same solutions, by a rank-revealing SVD (as the reduced model
+    does for its world constraints)."""
+    if not len(rows):
+        return rows, rhs
+    U, S, Vt = np.linalg.svd(rows, full_matrices=False)
+    rank = int(np.sum(S > 1e-10 * S[0]))
+    return Vt[:rank], (U[:, :rank].T @ rhs) / S[:rank, None]
+
+
+class MixedModel:
+    """The mixed mechanical system of a ``FullModel`` through a ``MixedSpace``.
+
+    Offers the interface of ``ReducedModel`` (M, m, C, c, d, Qg, forces,
+    stiffness, rest_state, full_state, project, …) with q = [α; ε_F].
+    ``reduced`` is the reduced model's ``Embedding`` of the same volume,
+    kept for the error indicator. Collective.
+    """
+
+    kind = "mixed"
+    dense_saddle = False
+
+    def __init__(self, full, space, reduced=None):
+        self.full, self.space, self.reduced = full, space, reduced
+        self.comm, self.material = full.comm, full.material
+        self.total_mass = full.total_mass
+        self.fabric, self.layout = full.fabric, full.layout
+        G, Gs = space.Gamma, space.Gamma_scalar
+        with EV_PTAP:
+            self.M = full.M.PtAP(G)
+            self.m = full.m.PtAP(Gs)
+        self.M.setOptionsPrefix("mixed_M_")
+        self.M.setBlockSize(3)
+        self.Qg = G.createVecRight()
+        G.multTranspose(full.Qg, self.Qg)
+        with EV_MIXED:
+            self._constraints()
+        self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
+        self.Qfull = G.createVecLeft()
+        self.K = None
+        self._proj = None
+
+    @property
+    def nfull(self):
+        """Number of full control points."""
+        return int(self.space.full.sum())
+
+    def _constraints(self):
+        """C Γ_mix: world constraints and the contacts with a full side."""
+        allc, sp_ = cons.build(self.fabric), self.space
+        nent = np.diff(allc.indptr)
+        row = np.repeat(np.arange(allc.count), nent)
+        w = sp_.full[allc.indices] * np.abs(allc.values)
+        frac = np.zeros((allc.count, 2))
+        side = ((np.arange(len(row)) - allc.indptr[row]) >= 4).astype(int)  # a | b
+        np.add.at(frac, (row, side), w)
+        tot = np.zeros((allc.count, 2))
+        np.add.at(tot, (row, side), np.abs(allc.values))
+        frac = frac / np.maximum(tot, 1e-300)
+        contact = allc.kind == "contact"
+        touches = frac.max(1) > 0
+        keep = np.where(contact, frac.max(1) >= CONTACT_SIDE_FULL, touches)
+        pure = ~contact & ~touches                           # world rows in α only
+        lay, comm = self.layout, self.comm
+        mine = keep & (allc.owner >= lay.yarn_start) & (allc.owner < lay.yarn_end)
+        sel = np.flatnonzero(mine)
+        ent = np.flatnonzero(np.repeat(mine, nent))
+        local_row = np.repeat(np.arange(len(sel)), nent[sel])
+        indptr, indices, values = sp_.csr(local_row, allc.indices[ent],
+                                          allc.values[ent], len(sel))
+        rhs = allc.rhs[sel]
+        # world rows touching no full point: independent rows in α, rank 0
+        wsel = np.flatnonzero(pure)
+        ent = np.flatnonzero(np.repeat(pure, nent))
+        wi, wj, wv = sp_.csr(np.repeat(np.arange(len(wsel)), nent[wsel]),
+                             allc.indices[ent], allc.values[ent], len(wsel))
+        dense = sp.csr_matrix((wv, wj, wi), shape=(len(wsel), max(sp_.ncol, 1)))
+        acols = sp_.volcol[sp_.alpha]
+        c_w, d_w = independent_rows(dense[:, acols].toarray(), allc.rhs[wsel])
+        self.world_rank, self.world_rows = len(c_w), len(wsel)
+        self.contacts_kept = int((keep & contact).sum())
+        if comm.rank == 0 and len(c_w):
+            nz = np.abs(c_w) > 0
+            extra = (np.concatenate([[0], np.cumsum(nz.sum(1))]) + indptr[-1],
+                     acols[np.nonzero(nz)[1]], c_w[nz])
+            indptr = np.concatenate([indptr, extra[0][1:]])
+            indices = np.concatenate([indices, extra[1]])
+            values = np.concatenate([values, extra[2]])
+            rhs = np.concatenate([rhs, d_w])
+        k = len(indptr) - 1
+        K = comm.tompi4py().allreduce(k)
+        n, N = sp_.ncol_local, sp_.ncol
+        csr = (indptr, indices, values)
+        self.c = create_aij(comm, (k, K), (n, N), csr)
+        self.C = create_aij(comm, (3 * k, 3 * K), (3 * n, 3 * N),
+                            kron_identity(*csr), bsize=3)
+        self.d = self.C.createVecLeft()
+        self.d.getArray()[:] = rhs.ravel()
+
+    # -- state ---------------------------------------------------------------
+    def rest_state(self):
+        """q at rest: the kept volume control points and the full points' X."""
+        q = self.M.createVecRight()
+        q.getArray()[:] = self.space.state(self.fabric.X.reshape(-1, 3),
+                                           self.space.volume.flat)
+        return q
+
+    def full_state(self, q, out=None):
+        """ε = Γ_mix q."""
+        out = out or self.space.Gamma.createVecLeft()
+        self.space.Gamma.mult(q, out)
+        return out
+
+    def gather_points(self, q):
+        return self.full.gather_points(self.full_state(q, self.eps))
+
+    def elastic_energy(self, q):
+        return self.full.elastic_energy(self.full_state(q, self.eps))
+
+    def strain(self, q):
+        return self.full.strain(self.full_state(q, self.eps))
+
+    # -- mechanics -----------------------------------------------------------
+    def forces(self, q, qdot, Q):
+        """Γ_mixᵀ Q(Γ_mix q, Γ_mix q̇)."""
+        G = self.space.Gamma
+        G.mult(q, self.eps)
+        G.mult(qdot, self.epsdot)
+        self.full.forces(self.eps, self.epsdot, self.Qfull)
+        G.multTranspose(self.Qfull, Q)
+
+    def stiffness(self, q):
+        """Γ_mixᵀ K(Γ_mix q) Γ_mix by PtAP, the symbolic product reused."""
+        K = self.full.stiffness(self.full_state(q, self.eps))
+        with EV_PTAP:
+            if self.K is None:
+                self.K = K.PtAP(self.space.Gamma)
+                self.K.setBlockSize(3)
+            else:
+                K.PtAP(self.space.Gamma, self.K)
+        return self.K
+
+    def project(self, eps, q):
+        """Mass-weighted least squares q = M_mix⁻¹ Γ_mixᵀ M ε (no constraints)."""
+        if self._proj is None:
+            self._proj = PETSc.KSP().create(comm=self.comm)
+            self._proj.setOptionsPrefix("mixed_project_")
+            self._proj.setOperators(self.M)
+            self._proj.setType("preonly")
+            self._proj.getPC().setType("cholesky")
+            self._proj.getPC().setFactorSolverType("mumps")
+            self._proj.setFromOptions()
+        Me = self.full.M.createVecLeft()
+        self.full.M.mult(eps, Me)
+        rhs = self.M.createVecRight()
+        self.space.Gamma.multTranspose(Me, rhs)
+        self._proj.solve(rhs, q)
+        Me.destroy()
+        rhs.destroy()
+        return q
+
+    def destroy(self):
+        for A in (self.M, self.m, self.C, self.c, self.d, self.Qg, self.K,
+                  self.eps, self.epsdot, self.Qfull, self._proj):
+            if A is not None:
+                A.destroy()
+
+
+# -- regions -------------------------------------------------------------------
+def stitch_mask(fabric, regions):
+    """Control points of the stitches in ``regions`` [(c0, c1, r0, r1), …]
+    (half-open stitch and course ranges): control point i of course f lies in
+    stitch min(max(i − 1, 0) // 8, nc − 1), the stitch its parameter
+    s = i − 1 falls in."""
+    nc = max((fabric.ncp - 3) // SEGMENTS_PER_STITCH, 1)
+    stitch = np.minimum(np.maximum(np.arange(fabric.ncp) - 1, 0)
+                        // SEGMENTS_PER_STITCH, nc - 1)
+    course = np.arange(fabric.nyarn)
+    mask = np.zeros((fabric.nyarn, fabric.ncp), bool)
+    for c0, c1, r0, r1 in regions:
+        mask |= (((course >= r0) & (course < r1))[:, None]
+                 & ((stitch >= c0) & (stitch < c1))[None, :])
+    return mask.ravel()
+
+
+def parse_regions(text, where, nc, nr):
+    """Regions "c0:c1,r0:r1" (one per line or ';'-separated) as tuples,
+    checked against nc stitches and nr courses."""
+    regions = []
+    for item in text.replace(";", "\n").splitlines():
+        item = item.split("#")[0].strip()
+        if not item:
+            continue
+        try:
+            (c0, c1), (r0, r1) = (tuple(int(v) for v in part.split(":"))
+                                  for part in item.split(","))
+        except ValueError:
+            raise KnitError(f"{where}: {item!r} is not a region c0:c1,r0:r1 "
+                            "(half-open stitch and course ranges)") from None
+        if not (0 <= c0 < c1 <= nc and 0 <= r0 < r1 <= nr):
+            raise KnitError(f"{where}: region {item!r} is empty or outside the "
+                            f"fabric's {nc} stitches x {nr} courses")
+        regions.append((c0, c1, r0, r1))
+    return regions
+
+
+def region_options(opts):
+    """(region, file) from -knit_full_region and -knit_full_regions FILE."""
+    one = opts.getString("full_region", "", "yarn-level region of the mixed model: "
+                         "stitches c0:c1, courses r0:r1 (half-open), as c0:c1,r0:r1")
+    path = opts.getString("full_regions", "", "file of yarn-level regions, one "
+                          "c0:c1,r0:r1 a line ('#' comments)")
+    return one, path
+
+
+def regions_from_options(opts, fabric):
+    """The full regions of -knit_full_region and -knit_full_regions FILE."""
+    one, path = region_options(opts)
+    nc = max((fabric.ncp - 3) // SEGMENTS_PER_STITCH, 1)
+    regions = parse_regions(one, "-knit_full_region", nc, fabric.nyarn)
+    if path:
+        try:
+            with open(path) as f:
+                text = f.read()
+        except OSError as err:
+            raise KnitError(f"-knit_full_regions {path}: {err.strerror}") from None
+        regions += parse_regions(text, f"-knit_full_regions {path}", nc, fabric.nyarn)
+    return regions
+
+
+def mixed_from_options(opts, full, embedding):
+    """The mixed model of a full model, its regions from options, its volume
+    that of the reduced model's ``embedding`` (-knit_lod, -knit_volume)."""
+    weights = VolumeWeights(full.fabric, embedding.volume)
+    mask = stitch_mask(full.fabric, regions_from_options(opts, full.fabric))
+    mask = weights.patch_mask(weights.patches_of(mask))
+    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask),
+                      embedding)

@@ -1,0 +1,176 @@
+"""Static equilibrium of a constrained mechanical system.
+
+    F_u = −Q(ε, 0) + Cᵀμ = 0,   F_λ = C ε − d = 0,
+
+by Newton (PETSc SNES, prefix ``-static_``) with pseudo-transient
+continuation (Kelley & Keyes, SIAM J. Numer. Anal. 35, 1998): iteration k
+solves
+
+    [K + σ_k M  Cᵀ] [δε]     [F_u]
+    [C          0 ] [δμ] = − [F_λ],     (ε, μ) ← (ε, μ) + (δε, δμ),
+
+a backward Euler step of the gradient flow M ε̇ = Q − Cᵀμ of pseudo-time
+step 1/σ_k. The shift σ_k M makes the matrix regular where K alone is
+singular (a knit at its stress-free rest state is a mechanism: the courses
+hinge about their contacts) and keeps every step on the flow towards a
+stable equilibrium. σ_k follows the residual (switched evolution
+relaxation on the best residual so far),
+
+    σ_k = σ_0 γ^(−k) min_(j≤k) |F_j| / |F_0|,   σ_0 = max_i |F_i / m_i| / length,
+
+m_i the lumped mass of coordinate i, so the first step moves a free
+coordinate by ``length`` (the yarn radius) and σ goes to zero as the
+residual falls: the last iterations are Newton's, quadratic. A membrane
+residual EA·½|w'|² that jumps after a bending step does not raise σ (plain
+SER, σ_k ∝ |F_k|, does, and takes 30, 22, 60 iterations instead of 25, 19,
+57 on the hanging 7×7, the catenary and the hanging 15×30).
+
+Steps are taken in full (``-static_snes_linesearch_type basic``): the
+shift, not a line search on |F|, controls them. A backtracking line search
+on |F| stalls here: after a bending step the membrane residual of a stiff
+yarn is far above the gravity load, so it takes λ ~ 1e-2 at every iteration
+and |F| falls linearly (the cantilever of q L³/EI = 0.05 did not converge
+in 50 iterations at a fifth of its load).
+
+Why a shifted SNES and not TSPSEUDO: the same schedule through PETSc's
+TSPSEUDO (IFunction M ε̇ + F, SNES ksponly, ``-ts_pseudo_increment 1.5``)
+takes as many Jacobians (7, 22, 34 on the cantilever, the catenary, the
+hanging 7×7) but three residual evaluations a step instead of one (its
+time-step rule and its convergence test evaluate F at ε̇ = 0 again), 2 to 3
+times the wall time, and stops on |F| / |F_0| (``-ts_pseudo_frtol``), which
+the round-off floor of |F| (EA × machine epsilon) makes either loose or
+unreachable; the SNES keeps the Newton-update test below.
+"""
+
+from petsc4py import PETSc
+
+from .integrators import SimulationError, _default, step_convergence
+from .reasons import reason_name
+from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+                     solve_saddle)
+
+__all__ = ["StaticSolver"]
+
+
+class StaticSolver:
+    """Static equilibrium by Newton with pseudo-transient continuation.
+
+    Collective. ``steps`` equal load increments of gravity (1 is enough for
+    the continuation; more follow the loading path); ``length`` the largest
+    move of the first iteration (default: the yarn radius); ``growth`` γ,
+    the factor by which the pseudo-time step 1/σ grows each iteration
+    beyond what the residual gives.
+    """
+
+    name, dt = "static", 0.0
+
+    def __init__(self, system, steps=1, length=None, growth=1.5):
+        self.system, self.steps, self.growth = system, steps, growth
+        self.length = length or system.fabric.radius
+        K = system.stiffness(system.rest_state())
+        self.A = K.duplicate(copy=True)
+        self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle = SaddlePoint(self.A, system.C,
+                                  dense=getattr(system, "dense_saddle", False))
+        self.snes = PETSc.SNES().create(comm=system.comm)
+        self.snes.setOptionsPrefix("static_")
+        self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
+        self.snes.setFunction(self._residual, self.F)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.K)
+        self.snes.setType("newtonls")
+        self.snes.setConvergenceTest(self._converged(system))
+        _default("static_", "snes_linesearch_type", "basic")
+        self.snes.setTolerances(rtol=1e-12, atol=1e-50, max_it=500)
+        self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
+        self.snes.setFromOptions()
+        self.x, self.zero = system.M.createVecLeft(), system.M.createVecLeft()
+        self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
+        self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
+        self.lumped = system.M.getRowSum()
+        self.load, self.sigma, self.sigma0 = 1.0, 0.0, 0.0
+        self.f0 = self.fmin = 0.0
+
+    def _converged(self, system):
+        """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
+        shift is negligible (σ ≤ 1e-6 σ_0): a shifted step is small because
+        σM is large, not because F is."""
+        base = step_convergence(self.saddle, lambda: 1e-9 * system.fabric.radius)
+        R = PETSc.SNES.ConvergedReason
+
+        def test(snes, it, norms):
+            reason = base(snes, it, norms)
+            if reason == R.CONVERGED_SNORM_RELATIVE and \
+                    self.sigma > 1e-6 * self.sigma0:
+                return R.DIVERGED_MAX_IT if it >= snes.getTolerances()[3] \
+                    else R.ITERATING
+            return reason
+
+        return test
+
+    def _unpack(self, z):
+        u, lam = self.saddle.split(z)
+        self.x.getArray()[:] = u
+        self.mu.getArray()[:] = lam
+
+    def _residual(self, snes, z, F):
+        s = self.system
+        self._unpack(z)
+        s.forces(self.x, self.zero, self.Q)
+        self.Q.axpy(self.load - 1.0, s.Qg)
+        fu, fl = self.saddle.split(F)
+        fu[:] = -self.Q.getArray(readonly=True)
+        if self.saddle.constrained:
+            s.C.multTranspose(self.mu, self.tmp)
+            fu += self.tmp.getArray(readonly=True)
+            s.C.mult(self.x, self.Cx)
+            fl[:] = self.Cx.getArray(readonly=True) - s.d.getArray(readonly=True)
+
+    def _shift(self, snes):
+        """σ_k = σ_0 γ^(−k) min_(j≤k) |F_j| / |F_0|; σ_0 = max_i |F_i/m_i| / length."""
+        fnorm, k = snes.getFunctionNorm(), snes.getIterationNumber()
+        if k == 0:
+            self.tmp.getArray()[:] = self.saddle.split(self.F)[0]
+            self.tmp.pointwiseDivide(self.tmp, self.lumped)
+            self.sigma0 = self.tmp.norm(PETSc.NormType.INFINITY) / self.length
+            self.f0 = self.fmin = fnorm
+        self.fmin = min(self.fmin, fnorm)
+        self.sigma = self.sigma0 * self.fmin / self.f0 / self.growth**k \
+            if self.f0 > 0 else 0.0
+        return self.sigma
+
+    def _jacobian(self, snes, z, J, P):
+        s = self.system
+        self._unpack(z)
+        sigma = self._shift(snes)
+        s.stiffness(self.x).copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        if sigma:
+            self.A.axpy(sigma, s.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle.update()
+
+    def solve(self, x, monitor=None):
+        """Equilibrium from the initial guess x (overwritten). Returns Newton its."""
+        self.saddle.split(self.z)[0][:] = x.getArray(readonly=True)
+        its = 0
+        for i in range(1, self.steps + 1):
+            self.load = i / self.steps
+            try:
+                solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+            except SolverFailure as err:
+                raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
+                                      f"{err}") from None
+            reason = self.snes.getConvergedReason()
+            its += self.snes.getIterationNumber()
+            if monitor:
+                monitor(i, self.load, self.snes)
+            if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+                raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
+                                      f"{ksp_failure(self.snes.getKSP())}")
+            if reason < 0:
+                raise SimulationError(
+                    f"static Newton did not converge at load {self.load:.3g} "
+                    f"({reason_name(self.snes)} after "
+                    f"{self.snes.getIterationNumber()} iterations, |F| = "
+                    f"{self.snes.getFunctionNorm():.3e}, shift σ = {self.sigma:.3g})")
+        self._unpack(self.z)
+        self.x.copy(x)
+        return its

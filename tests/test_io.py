@@ -1,0 +1,60 @@
+"""The time series as meshio reads it back: every frame, moving points."""
+
+import meshio
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from knitfem import io
+from helpers import jersey
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.rank > 0, reason="files on rank 0")
+
+
+def read(path):
+    with meshio.xdmf.TimeSeriesReader(path) as r:
+        points, cells = r.read_points_cells()
+        frames = [r.read_data(k) for k in range(r.num_steps)]
+    return points, cells, frames
+
+
+def moved(P, k):
+    """Frame k: the fabric translated and sheared (every point moves)."""
+    return P + k * np.array([0.0, -1e-3, 2e-4]) + 1e-3 * k * P[..., :1]
+
+
+def test_meshio_reads_every_frame_with_its_geometry(tmp_path):
+    P = jersey(2, 2).X
+    s = io.CentrelineSeries(str(tmp_path / "yarns.xdmf"), P, 5e-4)
+    for k in range(3):
+        s.write(10 * k, 0.1 * k, moved(P, k))
+    points, cells, frames = read(tmp_path / "yarns.xdmf")
+    assert [t for t, _, _ in frames] == [0.0, 0.1, 0.2]
+    assert cells[0].type == "line" and np.array_equal(points, io.centrelines(P)
+                                                      .reshape(-1, 3))
+    for k, (_, data, _) in enumerate(frames):
+        expect = io.centrelines(moved(P, k)).reshape(-1, 3)
+        assert np.array_equal(data["position"], expect)
+        assert np.all(data["radius"] == 5e-4)
+
+
+def test_series_continued_keeps_frames_up_to_the_checkpoint(tmp_path):
+    P = jersey(2, 2).X
+    path = str(tmp_path / "yarns.xdmf")
+    s = io.CentrelineSeries(path, P, 5e-4)
+    for k in range(4):
+        s.write(k, 0.01 * k, moved(P, k))
+    s = io.CentrelineSeries(path, P, 5e-4, keep=1, note="continues x")
+    s.write(2, 0.02, moved(P, 5))
+    _, _, frames = read(path)
+    assert [t for t, _, _ in frames] == [0.0, 0.01, 0.02]
+    assert np.array_equal(frames[1][1]["position"],
+                          io.centrelines(moved(P, 1)).reshape(-1, 3))
+    assert np.array_equal(frames[2][1]["position"],
+                          io.centrelines(moved(P, 5)).reshape(-1, 3))
+    assert sorted(p.name for p in (tmp_path / "yarns").iterdir()) == [
+        "00000000.h5", "00000001.h5", "00000002.h5", "mesh.h5"]
+    assert 'Value="continues x"' in open(path).read()
+    io.CentrelineSeries(path, P, 5e-4)                   # a fresh series
+    assert [p.name for p in (tmp_path / "yarns").iterdir()] == ["mesh.h5"]
+    assert "<Time" not in open(path).read()

@@ -1,0 +1,269 @@
+"""The mixed model: all full ≡ the full model, none ≡ the reduced model, a
+partial region exact on its linear map, and np = 2 ≡ np = 1."""
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from helpers import COMM, gather, jersey, models, run, to_scipy
+from knitfem import constraints as cons
+from knitfem.mixed import (MixedModel, MixedSpace, VolumeWeights, parse_regions,
+                           stitch_mask)
+from knitfem.options import KnitError
+from solvers.integrators import BackwardEuler
+
+SELF = PETSc.COMM_SELF
+
+
+def mixed(full, red, mask):
+    weights = VolumeWeights(full.fabric, red.embedding.volume)
+    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask))
+
+
+LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches
+
+
+@pytest.fixture(scope="module")
+def fabric():
+    return jersey(6, 6, hold_top=True)
+
+
+def region(full, red, regions):
+    """Full points of stitch regions, widened to whole volume patches."""
+    w = VolumeWeights(full.fabric, red.embedding.volume)
+    return w.patch_mask(w.patches_of(stitch_mask(full.fabric, regions)))
+
+
+@pytest.fixture(scope="module")
+def serial(fabric):
+    full, red = models(SELF, fabric, lod=LOD)
+    yield full, red
+    red.destroy()
+    full.destroy()
+
+
+def states(system, nsteps=5, dt=1e-3):
+    _, x, _ = run(system, BackwardEuler, dt, nsteps)
+    return gather(system.comm, system.full_state(x))
+
+
+def test_all_full_is_the_full_model(serial, fabric):
+    full, red = serial
+    mix = mixed(full, red, np.ones(fabric.nyarn * fabric.ncp, bool))
+    G = to_scipy(mix.space.Gamma).toarray()
+    assert np.array_equal(G, np.eye(len(G)))             # Γ_mix = I, no α left
+    for name in ("M", "C"):
+        A, B = to_scipy(getattr(mix, name)), to_scipy(getattr(full, name))
+        assert abs(A - B).max() <= 1e-15 * abs(B).max()
+    assert np.array_equal(mix.d.getArray(), full.d.getArray())
+    eps = states(mix)
+    ref = states(full)
+    assert np.abs(ref - fabric.X.ravel()).max() > 0.1 * fabric.radius   # it moved
+    assert np.allclose(eps, ref, rtol=0, atol=1e-10 * fabric.radius)
+
+
+def test_none_full_is_the_reduced_model(serial, fabric):
+    full, red = serial
+    mix = mixed(full, red, np.zeros(fabric.nyarn * fabric.ncp, bool))
+    G, Gr = to_scipy(mix.space.Gamma), to_scipy(red.embedding.Gamma)
+    assert G.shape == Gr.shape and abs(G - Gr).max() == 0
+    assert abs(to_scipy(mix.M) - to_scipy(red.M)).max() <= 1e-15 * abs(
+        to_scipy(red.M)).max()
+    assert mix.contacts_kept == 0 and mix.world_rank == red.world_rank
+    eps = states(mix)
+    ref = states(red)
+    assert np.abs(ref - fabric.X.ravel()).max() > 0.01 * fabric.radius
+    assert np.allclose(eps, ref, rtol=0, atol=1e-10 * fabric.radius)
+
+
+def test_partial_region_map_and_constraints(serial, fabric):
+    """Identity rows for full points, Γ rows for the rest; affine maps stay
+    in range(Γ_mix); kept contacts are those with a side at least half full,
+    and every kept constraint holds at rest."""
+    full, red = serial
+    mask = region(full, red, [(0, 2, 1, 2)])
+    assert 0 < mask.sum() < 0.5 * mask.size
+    mix = mixed(full, red, mask)
+    G, Gr = to_scipy(mix.space.Gamma_scalar), to_scipy(red.embedding.Gamma_scalar)
+    sp_ = mix.space
+    assert np.allclose(np.asarray(G.sum(1)).ravel(), 1, rtol=0, atol=1e-14)
+    F = np.flatnonzero(mask)
+    assert np.array_equal(G[F][:, sp_.fullcol[F]].toarray(), np.eye(len(F)))
+    E = np.flatnonzero(~mask)
+    assert abs(G[E][:, sp_.volcol[sp_.alpha]] - Gr[E][:, sp_.alpha]).max() == 0
+    # rest state, and an affine motion of q moves ε by the same map
+    q = mix.rest_state()
+    X = fabric.X.reshape(-1, 3)
+    assert np.allclose(mix.full_state(q).getArray(), X.ravel(), rtol=0,
+                       atol=1e-12 * fabric.radius)
+    A = np.array([[1.1, 0.2, -0.1], [0.05, 0.9, 0.3], [0.0, -0.2, 1.2]])
+    qa = q.getArray().reshape(-1, 3)
+    qa[:] = qa @ A.T + 1e-3
+    assert np.allclose(mix.full_state(q).getArray().reshape(-1, 3), X @ A.T + 1e-3,
+                       rtol=0, atol=1e-12)
+    allc = cons.build(fabric)
+    contact = allc.kind == "contact"
+    side = np.zeros((allc.count, 2))
+    for i in np.flatnonzero(contact):
+        sl = slice(allc.indptr[i], allc.indptr[i + 1])
+        full_w = mask[allc.indices[sl]] * np.abs(allc.values[sl])
+        side[i] = full_w[:4].sum(), full_w[4:].sum()
+    assert mix.contacts_kept == np.sum(side.max(1) >= 0.5) > 0
+    assert mix.contacts_kept < contact.sum()
+    r = mix.C.createVecLeft()
+    mix.C.mult(mix.rest_state(), r)
+    r.axpy(-1.0, mix.d)
+    assert r.norm(PETSc.NormType.INFINITY) < 1e-15
+    # it runs and lies between the two models' motions
+    eps = states(mix)
+    assert np.isfinite(eps).all()
+
+
+def test_parallel_equals_serial(fabric):
+    """np = 2 ≡ np = 1 (run under mpirun -n 2 by ``make test``)."""
+    out = []
+    for comm in (COMM, SELF):
+        full, red = models(comm, fabric, lod=LOD)
+        out.append(states(mixed(full, red, region(full, red, [(4, 5, 4, 6)]))))
+    assert np.abs(out[1] - fabric.X.ravel()).max() > 1e-3 * fabric.radius
+    assert np.allclose(out[0], out[1], rtol=0, atol=1e-8 * fabric.radius)
+
+
+@pytest.mark.parametrize("text", ["0:2", "2:1,0:1", "0:2,0:9", "a:b,0:1"])
+def test_bad_region_is_one_line(text):
+    with pytest.raises(KnitError, match="c0:c1,r0:r1|outside|empty"):
+        parse_regions(text, "-knit_full_region", 3, 4)
+
+
+# -- point loads, the indicator, adaptation ------------------------------------
+def test_point_load_vector_sums_to_the_force():
+    """Σ_a b_a(u) F over the four control points is F (partition of unity),
+    and its moment about the origin is P(s) × F (linear precision)."""
+    from knitfem.pattern import Jersey
+    from knitfem.scenes import pulled
+
+    j = Jersey(3, 4)
+    F = np.array([0.1, -0.3, 0.2])
+    fab = pulled(j, (2, 1), F)
+    Q = fab.load_vector(0, fab.nyarn)
+    assert np.allclose(Q.sum(0), F, rtol=0, atol=1e-15)
+    X = fab.X.reshape(-1, 3)
+    P = X[np.abs(Q).sum(1) > 0].T @ np.abs(Q[np.abs(Q).sum(1) > 0, :1]) / abs(F[0])
+    from knitfem import bspline
+    head = bspline.curve_points(fab.X[1], j.heads(1)[[2]])[0]
+    assert np.allclose(P.ravel(), head, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="outside"):
+        pulled(j, (4, 0), F)
+
+
+def indicator(fabric, lod=LOD):
+    from knitfem.adapt import Indicator
+
+    full, red = models(COMM, fabric, lod=lod)
+    return full, red, Indicator(full, red.embedding,
+                                VolumeWeights(fabric, red.embedding.volume))
+
+
+def test_indicator_vanishes_in_range_and_sees_a_point_load():
+    """Free fabric at rest under gravity: the full model's acceleration is g
+    everywhere, in range(Γ), so η = 0 and δ = 0 to round-off. A point load
+    makes η largest on the loaded patch."""
+    from knitfem.pattern import Jersey
+    from knitfem.scenes import pulled
+
+    full, _, ind = indicator(jersey(6, 6))
+    eta, dist = ind(full.rest_state())
+    # round-off of stiff, light yarns: EA ε_mach / (ρ h) ≈ 1e-6 m/s²
+    assert eta.max() < 1e-5 * 9.81 and dist.max() < 1e-10
+    fab = pulled(Jersey(6, 6), (4, 4), (0.0, 0.0, 1e-3))
+    fab.fixed = (np.zeros(0, int), np.zeros(0))
+    full, _, ind = indicator(fab)
+    eta, _ = ind(full.rest_state())
+    assert np.unravel_index(np.argmax(eta), eta.shape) == (1, 1)
+    assert eta.max() > 10 * np.median(eta)
+
+
+@pytest.mark.parametrize("patches", [[[True, False], [False, False]],
+                                     [[True, True], [True, False]]])
+def test_transfer_keeps_momentum(patches):
+    """Refine and coarsen a free fabric in motion: linear momentum 1ᵀMε̇ is
+    kept to round-off (contacts are internal), and the transferred state
+    satisfies the new constraints."""
+    from knitfem.adapt import transfer
+
+    fab = jersey(6, 6)
+    full, red = models(COMM, fab, lod=LOD)
+    w = VolumeWeights(fab, red.embedding.volume)
+    start = mixed(full, red, w.patch_mask(np.array([[False, True], [False, False]])))
+    x, v = start.rest_state(), start.rest_state()
+    rng = np.random.default_rng(3)
+    x.getArray()[:] += 1e-2 * fab.radius * rng.standard_normal(x.getLocalSize())
+    v.getArray()[:] = 0.1 + 0.01 * rng.standard_normal(v.getLocalSize())
+    new = mixed(full, red, w.patch_mask(np.array(patches)))
+    x2, v2 = transfer(start, new, x, v)
+
+    def momentum(system, vel):
+        ev, Mv = system.full_state(vel), full.M.createVecLeft()
+        full.M.mult(ev, Mv)
+        return COMM.tompi4py().allreduce(Mv.getArray().reshape(-1, 3).sum(0))
+
+    p0, p1 = momentum(start, v), momentum(new, v2)
+    assert np.abs(p0).min() > 1e-3 * full.total_mass
+    assert np.allclose(p1, p0, rtol=1e-12, atol=0)
+    for state, rhs, scale in ((x2, new.d, fab.radius), (v2, None, 0.1)):
+        r = new.C.createVecLeft()
+        new.C.mult(state, r)
+        if rhs is not None:
+            r.axpy(-1.0, rhs)
+        assert r.norm(PETSc.NormType.INFINITY) < 1e-12 * scale
+
+
+# -- the command line ------------------------------------------------------------
+def knitfem_run(*args):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(__file__)))
+    return subprocess.run([sys.executable, "-m", "knitfem.cli", "run", *args,
+                           "-skip_petscrc"], capture_output=True, text=True,
+                          env=env, timeout=300)
+
+
+serial_only = pytest.mark.skipif(COMM.size > 1, reason="runs knitfem in subprocesses")
+
+
+@serial_only
+def test_adaptive_run_writes_indicator(tmp_path):
+    """knitfem run -knit_scene pulled -knit_model mixed -knit_adapt: the pulled
+    patch is refined at the start, logged, and the indicator is in
+    summary.json and indicator.png."""
+    import json
+
+    p = knitfem_run("-knit_scene", "pulled", "-knit_rows", "6", "-knit_cols", "9",
+                    "-knit_lod", "6,5", "-knit_model", "mixed", "-knit_adapt",
+                    "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.02",
+                    "-knit_snapshots", "0.02", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    assert rec["model"] == "mixed" and rec["adapt"]["events"][0]["refined"] == [[1, 0]]
+    eta = np.array(rec["indicator_last"]["eta"])
+    assert eta.shape == (3, 2) and np.all(eta > 0)
+    assert rec["adapt"]["unknowns_max"] == rec["unknowns"] < 3 * 6 * 75 * 0.5
+    assert (tmp_path / "indicator.png").stat().st_size > 0
+
+
+@serial_only
+@pytest.mark.parametrize("args,message", [
+    (["-knit_model", "reduced", "-knit_adapt"], "-knit_adapt needs -knit_model mixed"),
+    (["-knit_model", "mixed", "-knit_full_region", "0:9,1:2"], "outside"),
+    (["-knit_model", "mixed", "-knit_full_regions", "/nonexistent"], "No such file"),
+    (["-knit_scene", "pulled", "-knit_pull_force", "1,2"], "three numbers"),
+])
+def test_bad_input_is_one_line(args, message, tmp_path):
+    p = knitfem_run("-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",
+                    "-o", str(tmp_path), *args)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert message in p.stdout + p.stderr
+    assert "Traceback" not in p.stderr
