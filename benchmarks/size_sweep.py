@@ -3,14 +3,13 @@
     .venv/bin/python -m benchmarks.size_sweep \\
         -bench_sizes 10x10,20x40,40x80,80x160,105x400 -bench_profile 25
     mpirun -n 2 .venv/bin/python -m benchmarks.size_sweep \\
-        -bench_sizes 10x10,20x40,40x80,80x160,105x400 -bench_profile 25 \\
-        -full_mat_mumps_icntl_14 300
+        -bench_sizes 10x10,20x40,40x80,80x160,105x400 -bench_profile 25
     .venv/bin/python -m benchmarks.size_sweep -bench_plot
     # strong scaling, per-rank event times: results/size_sweep_np<P>_strong.json
-    .venv/bin/python -m benchmarks.size_sweep -bench_sizes 40x80,80x160 \
+    .venv/bin/python -m benchmarks.size_sweep -bench_sizes 20x40,40x80,80x160 \\
         -bench_tag strong
-    mpirun -n 2 .venv/bin/python -m benchmarks.size_sweep \
-        -bench_sizes 40x80,80x160 -bench_tag strong
+    mpirun -n 2 .venv/bin/python -m benchmarks.size_sweep \\
+        -bench_sizes 20x40,40x80,80x160 -bench_tag strong
 
 For each size, the hanging scene of ``knitfem run`` (full model, top course
 held, backward Euler) is set up and advanced -bench_steps steps: set-up

@@ -170,7 +170,10 @@ def saddle_ksp(saddle, prefix):
         pc.setFactorSetUpSolverType()
         pc.getFactorMatrix().setMumpsCntl(1, 0.0)   # P is quasi-definite
     if pc.getType() == "fieldsplit" and saddle.constrained:
-        pc.setFieldSplitIS(("u", saddle.fields[0]), ("l", saddle.fields[1]))
+        u, lam = ("u", saddle.fields[0]), ("l", saddle.fields[1])
+        # with P regularised, −δI comes first: its Schur complement
+        # A + CᵀC/δ is SPD and "selfp" assembles it exactly
+        pc.setFieldSplitIS(*((lam, u) if saddle.delta else (u, lam)))
     return ksp
 
 
