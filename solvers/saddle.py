@@ -267,11 +267,17 @@ def failure_or_retry(ksp, err):
 
 def solve_saddle(solve, ksp):
     """``solve()``, repeated with more MUMPS workspace while it runs out of
-    it; any other failure raises ``SolverFailure`` (collective)."""
+    it; any other failure, raised or only left in the KSP's reason (PETSc
+    3.18 stops raising DIVERGED_* after a first error in a process), raises
+    ``SolverFailure`` (collective)."""
     while True:
         try:
-            return solve()
+            result = solve()
         except PETSc.Error as err:
             line = failure_or_retry(ksp, err)
             if line is not None:
                 raise SolverFailure(line) from None
+            continue
+        if ksp.getConvergedReason() < 0:
+            raise SolverFailure(ksp_failure(ksp))
+        return result

@@ -143,8 +143,8 @@ def test_petsc_error_in_newton_becomes_simulation_error():
     try:
         integ = BackwardEuler(model, 1e-3)
         integ.max_halvings = 1
-        with pytest.raises(SimulationError, match=r"full_ Newton solver failed with "
-                                                  r"PETSc error \d+"):
+        with pytest.raises(SimulationError, match=r"KSP cg with PC none did not "
+                                                  r"converge .*-full_ksp_max_it"):
             integrate(integ, model, 1e-3)
     finally:
         for k in ("full_ksp_type", "full_pc_type", "full_ksp_max_it"):
