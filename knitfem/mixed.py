@@ -47,6 +47,7 @@ from . import bspline, constraints as cons
 from .assembly import create_aij, kron_identity
 from .options import KnitError
 from .pattern import SEGMENTS_PER_STITCH
+from .reduced import EmbeddedModel
 
 __all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "stitch_mask",
            "parse_regions", "regions_from_options", "mixed_from_options"]
@@ -190,7 +191,7 @@ def independent_rows(rows, rhs):
     return Vt[:rank], (U[:, :rank].T @ rhs) / S[:rank, None]
 
 
-class MixedModel:
+class MixedModel(EmbeddedModel):
     """The mixed mechanical system of a ``FullModel`` through a ``MixedSpace``.
 
     Offers the interface of ``ReducedModel`` (M, m, C, c, d, Qg, forces,
@@ -201,6 +202,10 @@ class MixedModel:
 
     kind = "mixed"
     dense_saddle = False
+
+    @property
+    def Gamma(self):
+        return self.space.Gamma
 
     def __init__(self, full, space, reduced=None):
         self.full, self.space, self.reduced = full, space, reduced
@@ -286,21 +291,6 @@ class MixedModel:
         q.getArray()[:] = self.space.state(self.fabric.X.reshape(-1, 3),
                                            self.space.volume.flat)
         return q
-
-    def full_state(self, q, out=None):
-        """ε = Γ_mix q."""
-        out = out or self.space.Gamma.createVecLeft()
-        self.space.Gamma.mult(q, out)
-        return out
-
-    def gather_points(self, q):
-        return self.full.gather_points(self.full_state(q, self.eps))
-
-    def elastic_energy(self, q):
-        return self.full.elastic_energy(self.full_state(q, self.eps))
-
-    def strain(self, q):
-        return self.full.strain(self.full_state(q, self.eps))
 
     # -- mechanics -----------------------------------------------------------
     def forces(self, q, qdot, Q):

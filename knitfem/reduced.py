@@ -159,7 +159,29 @@ def embedding_from_options(opts, comm, fabric, layout=None):
     return Embedding(comm, layout, fabric, volume)
 
 
-class ReducedModel:
+class EmbeddedModel:
+    """What a mechanical system whose yarn coordinates are ε = Γ q offers
+    through its full model: ε, the gathered control points, the elastic
+    energy and the strain. Subclasses hold ``Gamma``, ``full`` and a work
+    vector ``eps``."""
+
+    def full_state(self, q, out=None):
+        """ε = Γ q."""
+        out = out or self.Gamma.createVecLeft()
+        self.Gamma.mult(q, out)
+        return out
+
+    def gather_points(self, q):
+        return self.full.gather_points(self.full_state(q, self.eps))
+
+    def elastic_energy(self, q):
+        return self.full.elastic_energy(self.full_state(q, self.eps))
+
+    def strain(self, q):
+        return self.full.strain(self.full_state(q, self.eps))
+
+
+class ReducedModel(EmbeddedModel):
     """The reduced mechanical system of a ``FullModel`` through an ``Embedding``.
 
     Offers the interface the integrators use (M, m, C, c, d, Qg, forces,
@@ -167,6 +189,10 @@ class ReducedModel:
     """
 
     kind = "reduced"
+
+    @property
+    def Gamma(self):
+        return self.embedding.Gamma
 
     def __init__(self, full, embedding):
         self.full, self.embedding = full, embedding
@@ -232,21 +258,6 @@ class ReducedModel:
         lo, hi = a.getOwnershipRange()
         a.getArray()[:] = self.embedding.volume.flat.ravel()[lo:hi]
         return a
-
-    def full_state(self, alpha, out=None):
-        """ε = Γ α."""
-        out = out or self.embedding.Gamma.createVecLeft()
-        self.embedding.Gamma.mult(alpha, out)
-        return out
-
-    def gather_points(self, alpha):
-        return self.full.gather_points(self.full_state(alpha, self.eps))
-
-    def elastic_energy(self, alpha):
-        return self.full.elastic_energy(self.full_state(alpha, self.eps))
-
-    def strain(self, alpha):
-        return self.full.strain(self.full_state(alpha, self.eps))
 
     def forces(self, alpha, alphadot, Q):
         """Q^V = Γᵀ Q(Γα, Γα̇) = −Γᵀ ∂E/∂ε(Γα) + Γᵀ Q_g − c_d M^V α̇ (collective):
