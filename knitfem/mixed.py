@@ -312,25 +312,6 @@ class MixedModel(EmbeddedModel):
                 K.PtAP(self.space.Gamma, self.K)
         return self.K
 
-    def project(self, eps, q):
-        """Mass-weighted least squares q = M_mix⁻¹ Γ_mixᵀ M ε (no constraints)."""
-        if self._proj is None:
-            self._proj = PETSc.KSP().create(comm=self.comm)
-            self._proj.setOptionsPrefix("mixed_project_")
-            self._proj.setOperators(self.M)
-            self._proj.setType("preonly")
-            self._proj.getPC().setType("cholesky")
-            self._proj.getPC().setFactorSolverType("mumps")
-            self._proj.setFromOptions()
-        Me = self.full.M.createVecLeft()
-        self.full.M.mult(eps, Me)
-        rhs = self.M.createVecRight()
-        self.space.Gamma.multTranspose(Me, rhs)
-        self._proj.solve(rhs, q)
-        Me.destroy()
-        rhs.destroy()
-        return q
-
     def destroy(self):
         for A in (self.M, self.m, self.C, self.c, self.d, self.Qg, self.K,
                   self.eps, self.epsdot, self.Qfull, self._proj):

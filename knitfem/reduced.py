@@ -180,6 +180,26 @@ class EmbeddedModel:
     def strain(self, q):
         return self.full.strain(self.full_state(q, self.eps))
 
+    def project(self, eps, q):
+        """Mass-weighted least squares q = (ΓᵀMΓ)⁻¹ Γᵀ M ε (yarn level → this
+        model), by a Cholesky factorisation of ΓᵀMΓ (``-<kind>_project_``)."""
+        if getattr(self, "_proj", None) is None:
+            self._proj = PETSc.KSP().create(comm=self.comm)
+            self._proj.setOptionsPrefix(f"{self.kind}_project_")
+            self._proj.setOperators(self.M)
+            self._proj.setType("preonly")
+            self._proj.getPC().setType("cholesky")
+            self._proj.getPC().setFactorSolverType("mumps")
+            self._proj.setFromOptions()
+        Me = self.full.M.createVecLeft()
+        self.full.M.mult(eps, Me)
+        rhs = self.M.createVecRight()
+        self.Gamma.multTranspose(Me, rhs)
+        self._proj.solve(rhs, q)
+        Me.destroy()
+        rhs.destroy()
+        return q
+
 
 class ReducedModel(EmbeddedModel):
     """The reduced mechanical system of a ``FullModel`` through an ``Embedding``.
@@ -320,23 +340,6 @@ class ReducedModel(EmbeddedModel):
                 (N, N), (*self.dense_csr, self.R.reshape(-1)), comm=self.comm)
             self.K.setBlockSize(3)
             self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-
-    def project(self, eps, alpha):
-        """Mass-weighted least squares α = (ΓᵀMΓ)⁻¹ Γᵀ M ε (full → reduced)."""
-        if not hasattr(self, "_proj"):
-            self._proj = PETSc.KSP().create(comm=self.comm)
-            self._proj.setOptionsPrefix("reduced_project_")
-            self._proj.setOperators(self.M)
-            self._proj.setType("preonly")
-            self._proj.getPC().setType("cholesky")
-            self._proj.getPC().setFactorSolverType("mumps")
-            self._proj.setFromOptions()
-        Me = self.full.M.createVecLeft()
-        self.full.M.mult(eps, Me)
-        rhs = self.M.createVecRight()
-        self.embedding.Gamma.multTranspose(Me, rhs)
-        self._proj.solve(rhs, alpha)
-        return alpha
 
     def destroy(self):
         for A in (self.M, self.m, self.C, self.c, self.d, self.Qg, self.K):
