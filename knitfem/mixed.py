@@ -47,13 +47,12 @@ from . import bspline, constraints as cons
 from .assembly import create_aij, kron_identity
 from .options import KnitError
 from .pattern import SEGMENTS_PER_STITCH
-from .reduced import EmbeddedModel
+from .reduced import EV_PTAP, EmbeddedModel
 
 __all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "stitch_mask",
            "parse_regions", "regions_from_options", "mixed_from_options"]
 
 EV_MIXED = PETSc.Log.Event("knitMixedSetUp")
-EV_PTAP = PETSc.Log.Event("knitPtAP")
 
 CONTACT_SIDE_FULL = 0.5     # a contact point is full when ≥ this weight is
 
@@ -208,21 +207,11 @@ class MixedModel(EmbeddedModel):
         return self.space.Gamma
 
     def __init__(self, full, space, reduced=None):
-        self.full, self.space, self.reduced = full, space, reduced
-        self.comm, self.material = full.comm, full.material
-        self.total_mass = full.total_mass
-        self.fabric, self.layout = full.fabric, full.layout
-        G, Gs = space.Gamma, space.Gamma_scalar
-        with EV_PTAP:
-            self.M = full.M.PtAP(G)
-            self.m = full.m.PtAP(Gs)
-        self.M.setOptionsPrefix("mixed_M_")
-        self.M.setBlockSize(3)
-        self.Qg = G.createVecRight()
-        G.multTranspose(full.Qg, self.Qg)
+        self.space, self.reduced = space, reduced
+        G = space.Gamma
+        self._embed(full, G, space.Gamma_scalar, "mixed_M_")
         with EV_MIXED:
             self._constraints()
-        self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.Qfull = G.createVecLeft()
         self.K = None
         self._proj = None

@@ -165,6 +165,22 @@ class EmbeddedModel:
     energy and the strain. Subclasses hold ``Gamma``, ``full`` and a work
     vector ``eps``."""
 
+    def _embed(self, full, G, Gs, prefix):
+        """What both share: the full model's data, M = Γᵀ M Γ and m = Γ̃ᵀ m Γ̃
+        by PtAP, Q_g = Γᵀ Q_g, and work vectors for ε and ε̇."""
+        self.full = full
+        self.comm, self.material = full.comm, full.material
+        self.total_mass = full.total_mass
+        self.fabric, self.layout = full.fabric, full.layout
+        with EV_PTAP:
+            self.M = full.M.PtAP(G)
+            self.m = full.m.PtAP(Gs)
+        self.M.setOptionsPrefix(prefix)
+        self.M.setBlockSize(3)
+        self.Qg = G.createVecRight()
+        G.multTranspose(full.Qg, self.Qg)
+        self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
+
     def full_state(self, q, out=None):
         """ε = Γ q."""
         out = out or self.Gamma.createVecLeft()
@@ -215,20 +231,10 @@ class ReducedModel(EmbeddedModel):
         return self.embedding.Gamma
 
     def __init__(self, full, embedding):
-        self.full, self.embedding = full, embedding
-        self.comm, self.material = full.comm, full.material
-        self.total_mass = full.total_mass
-        self.fabric, self.layout = full.fabric, full.layout
-        G, Gs = embedding.Gamma, embedding.Gamma_scalar
-        with EV_PTAP:
-            self.M = full.M.PtAP(G)
-            self.m = full.m.PtAP(Gs)
-        self.M.setOptionsPrefix("reduced_MV_")
-        self.M.setBlockSize(3)
-        self.Qg = G.createVecRight()
-        G.multTranspose(full.Qg, self.Qg)
+        self.embedding = embedding
+        G = embedding.Gamma
+        self._embed(full, G, embedding.Gamma_scalar, "reduced_MV_")
         self._world_constraints()
-        self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.Qfull = G.createVecLeft()
         self.K = None
         self.dense = (GroupedTangent(full, embedding)

@@ -48,3 +48,12 @@ def to_scipy(A):
     indptr, indices, values = A.getValuesCSR()
     return sp.csr_matrix((values, indices, indptr),
                          shape=(len(indptr) - 1, A.getSize()[1]))
+
+
+def energies(model, x, v):
+    """(T + E + V_g, T): kinetic ½ vᵀMv, elastic E(x), gravity −Q_gᵀx."""
+    Mv = v.duplicate()
+    model.M.mult(v, Mv)
+    kinetic = 0.5 * v.dot(Mv)
+    Mv.destroy()
+    return kinetic + model.elastic_energy(x) - model.Qg.dot(x), kinetic
