@@ -130,7 +130,10 @@ class SymplecticEuler:
             rhs_u[:] = mv[k::3]
             rhs_l[:] = g[k::3]
             with EV_SOLVE:
-                self.ksp.solve(self.rhs, self.sol)
+                try:
+                    solve_saddle(lambda: self.ksp.solve(self.rhs, self.sol), self.ksp)
+                except SolverFailure as err:
+                    raise SimulationError(str(err)) from None
             its += self.ksp.getIterationNumber()
             vv[k::3] = self.saddle.split(self.sol)[0]
         x.axpy(h, v)
@@ -544,10 +547,9 @@ class GeneralizedAlpha(NewtonStepper):
         ru[:] = b.getArray(readonly=True)
         rl[:] = 0.0
         try:
-            self.ksp.solve(rhs, sol)
-        except PETSc.Error as err:
-            raise SimulationError(f"the {self.prefix} start solve failed with "
-                                  f"PETSc error {err.ierr}") from None
+            solve_saddle(lambda: self.ksp.solve(rhs, sol), self.ksp)
+        except SolverFailure as err:
+            raise SimulationError(f"the start solve failed: {err}") from None
         out.getArray()[:] = self.saddle.split(sol)[0]
 
     def state(self):
