@@ -50,7 +50,7 @@ test-serial:
 	timeout 900 $(PYTEST) tests
 
 test-parallel:
-	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py tests/test_contacts.py
 
 clean:
 	rm -rf $(VENV) out *.egg-info build knitfem/_compiled.c knitfem/*.so

@@ -25,8 +25,8 @@ instead: the distance of ε from its mass-weighted projection
     δ_p = ( Σ_{i∈p} w_i |ε_i − ε_c,i|² / Σ_{i∈p} w_i )^½ / r   [yarn radii],
 
 what coarsening p would move its yarns by. Cost: one force evaluation, the
-scalar saddle point [m cᵀ; c 0] (factorised once) for three right-hand
-sides, three solves with ΓᵀMΓ (factorised once).
+saddle point [M Cᵀ; C 0] at ε factorised (C depends on ε: the contacts are
+frame-indifferent), three solves with ΓᵀMΓ (factorised once).
 
 Adaptation. At the start and every ``every`` steps, a volume patch with
 η_p > ``refine`` · median_p(η) becomes yarn level, and a yarn-level patch
@@ -38,10 +38,12 @@ standing out by 800 times the median; after one step of 0.01 s it is
 2e3–3e4 m/s² everywhere, the volume's stiff response to gravity, and the
 pull stands out by less than 2), so the rule refines where η stands out. On a change the mixed
 model is rebuilt and the state carried over
-by constrained mass-weighted least squares,
+by constrained mass-weighted least squares: q₂ minimises |Γ₂q − ε|²_M
+under g₂(q) = 0, by Gauss–Newton from the unconstrained fit, and q̇₂ the
+same for ε̇ under C₂(q₂) q̇ = 0,
 
-    [M₂ C₂ᵀ] [q₂ ]   [Γ₂ᵀ M ε ]      [M₂ C₂ᵀ] [q̇₂]   [Γ₂ᵀ M ε̇]
-    [C₂ 0  ] [μ  ] = [  d₂    ],     [C₂ 0  ] [μ ] = [   0    ],
+    [M₂ C₂ᵀ] [δq]   [Γ₂ᵀ M (ε − Γ₂q₂)]      [M₂ C₂ᵀ] [q̇₂]   [Γ₂ᵀ M ε̇]
+    [C₂ 0  ] [μ ] = [    −g₂(q₂)      ],     [C₂ 0  ] [μ ] = [   0    ],
 
 exact when the new space contains the old one and the state satisfies the
 new constraints (refinement away from the border). Contacts are internal
@@ -53,9 +55,10 @@ import json
 import os
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
-from solvers.saddle import SaddlePoint, saddle_ksp
+from solvers.saddle import SaddlePoint, saddle_ksp, solve_saddle
 
 from .mixed import MixedModel, MixedSpace, VolumeWeights
 
@@ -101,7 +104,8 @@ class Indicator:
         self.full, self.G = full, embedding.Gamma
         self.MV = full.M.PtAP(self.G)
         self.solve_MV = cholesky(self.MV, "indicator_MV_")
-        self.saddle = SaddlePoint(full.m, full.c)
+        full.constraint_jacobian(full.start_state())
+        self.saddle = SaddlePoint(full.M, full.C)
         mumps_workspace("indicator_")
         self.solve_a = saddle_ksp(self.saddle, "indicator_")
         self.z, self.sol = self.saddle.createVec(), self.saddle.createVec()
@@ -135,7 +139,7 @@ class Indicator:
                  - self.ec.getArray(readonly=True)).reshape(-1, 3)
             dist = self._patch_rms(d) / self.full.fabric.radius
             self.full.forces(eps, self.zero, self.Q)
-            self.acceleration(self.Q, self.a)
+            self.acceleration(eps, self.Q, self.a)
             self.full.M.mult(self.a, self.b)
             self.G.multTranspose(self.b, self.rhs)
             self.solve_MV.solve(self.rhs, self.alpha)
@@ -151,15 +155,15 @@ class Indicator:
         rms = np.sqrt(num / np.maximum(self.mass, 1e-300))
         return rms.reshape(self.shape[::-1]).T
 
-    def acceleration(self, Q, a):
-        """a from [M Cᵀ; C 0][a; λ] = [Q; 0], as three scalar solves with
-        [m cᵀ; c 0] (M = m ⊗ I₃, C = c ⊗ I₃)."""
+    def acceleration(self, eps, Q, a):
+        """a from [M Cᵀ; C 0][a; λ] = [Q; 0], C = C(ε) (collective)."""
+        if self.full.nonlinear_constraints:
+            self.full.constraint_jacobian(eps)
+            self.saddle.update(constraints=True)
         zu, zl = self.saddle.split(self.z)
-        q, out = Q.getArray(readonly=True), a.getArray()
-        for k in range(3):
-            zu[:], zl[:] = q[k::3], 0.0
-            self.solve_a.solve(self.z, self.sol)
-            out[k::3] = self.saddle.split(self.sol)[0]
+        zu[:], zl[:] = Q.getArray(readonly=True), 0.0
+        solve_saddle(lambda: self.solve_a.solve(self.z, self.sol), self.solve_a)
+        a.getArray()[:] = self.saddle.split(self.sol)[0]
 
     def destroy(self):
         for obj in (self.MV, self.solve_MV, self.solve_a, self.z, self.sol,
@@ -169,34 +173,52 @@ class Indicator:
         self.saddle.destroy()
 
 
-def transfer(old, new, x, v, prefix="adapt_transfer_"):
+def transfer(old, new, x, v, prefix="adapt_transfer_", iterations=20):
     """(q₂, q̇₂) on the system ``new`` from (x, v) on ``old`` by constrained
     mass-weighted least squares (module docstring). Collective."""
     full = old.full
-    saddle = SaddlePoint(new.M, new.C)
+    target, eps, Me = (full.M.createVecLeft() for _ in range(3))
+    q, qdot, b = (new.M.createVecRight() for _ in range(3))
+    g = new.C.createVecLeft()
+    old.full_state(x, target)
+    new.project(target, q)                             # unconstrained fit
+    saddle = SaddlePoint(new.M, new.constraint_jacobian(q))
     mumps_workspace(prefix)
-    # M₂'s volume block is ill-conditioned (1e8 on a 15x30 jersey): GMRES on
+    # M₂'s volume block is ill-conditioned (1e8 on a 15x30 jersey): FGMRES on
     # the factorisation recovers the digits that keep momentum to round-off
-    defaults(prefix, ksp_type="gmres", ksp_rtol=1e-14, ksp_atol=0)
+    # (GMRES's recursive residual parts from the true one at 1e-14 on 2 ranks)
+    defaults(prefix, ksp_type="fgmres", ksp_rtol=1e-14, ksp_atol=0)
     ksp = saddle_ksp(saddle, prefix)
-    eps, Me = full.M.createVecLeft(), full.M.createVecLeft()
     rhs, sol = saddle.createVec(), saddle.createVec()
-    out = []
-    for state, d in ((x, new.d), (v, None)):
-        old.full_state(state, eps)
+
+    def correct(out, constraint):
+        """out += δ: [M₂ C₂ᵀ; C₂ 0][δ; μ] = [Γ₂ᵀM(target − Γ₂ out); constraint];
+        returns max |δ| (collective)."""
+        new.full_state(out, eps)
+        eps.aypx(-1.0, target)
         full.M.mult(eps, Me)
-        q = new.M.createVecRight()
-        new.space.Gamma.multTranspose(Me, q)
+        new.Gamma.multTranspose(Me, b)
         ru, rl = saddle.split(rhs)
-        ru[:] = q.getArray(readonly=True)
-        rl[:] = d.getArray(readonly=True) if d is not None else 0.0
-        ksp.solve(rhs, sol)
-        q.getArray()[:] = saddle.split(sol)[0]
-        out.append(q)
-    for obj in (ksp, eps, Me, rhs, sol):
+        ru[:], rl[:] = b.getArray(readonly=True), constraint
+        solve_saddle(lambda: ksp.solve(rhs, sol), ksp)
+        step = saddle.split(sol)[0]
+        out.getArray()[:] += step
+        return new.comm.tompi4py().allreduce(np.abs(step).max() if step.size
+                                             else 0.0, op=MPI.MAX)
+
+    for _ in range(iterations):
+        new.constraint_residual(q, g)
+        if correct(q, -g.getArray(readonly=True)) <= 1e-12 * full.fabric.radius \
+                or not new.nonlinear_constraints:
+            break
+        new.constraint_jacobian(q)
+        saddle.update(constraints=True)
+    old.full_state(v, target)
+    correct(qdot, 0.0)
+    for obj in (ksp, target, eps, Me, rhs, sol, b, g):
         obj.destroy()
     saddle.destroy()
-    return out
+    return q, qdot
 
 
 class Adaptation:

@@ -54,27 +54,44 @@ def csr_rows(indptr):
 
 
 class ElementPattern:
-    """Scalar CSR pattern of 4-point elements and the slot of each entry.
+    """Scalar CSR pattern of elements and the slot of each element entry.
+
+    An element is a set of control points that it couples all to all: a
+    yarn segment (4 points) or a contact (8 points, 4 on each yarn).
 
     Parameters
     ----------
-    conn : (ne, 4) int
-        Global control-point indices of each element, all in the local rows
-        [row_start, row_start + nrows).
+    conns : (ne, k) int array, or a list of them (sets of elements)
+        Global control-point indices of each element.
     row_start, nrows : int
+        The local rows [row_start, row_start + nrows); entries in other rows
+        are left out and get slot −1.
+
+    ``slots`` holds each set's (ne, k, k) slots, ``slot`` the first set's.
     """
 
-    def __init__(self, conn, row_start, nrows):
-        self.conn, self.row_start, self.nrows = conn, row_start, nrows
-        ne = len(conn)
-        rows = np.broadcast_to(conn[:, :, None], (ne, 4, 4)) - row_start
-        cols = np.broadcast_to(conn[:, None, :], (ne, 4, 4))
-        ncols = int(conn.max()) + 1 if ne else 1
-        keys, slot = np.unique(rows.astype(np.int64) * ncols + cols,
-                               return_inverse=True)
+    def __init__(self, conns, row_start, nrows):
+        conns = [conns] if isinstance(conns, np.ndarray) else list(conns)
+        self.conn, self.row_start, self.nrows = conns[0], row_start, nrows
+        self.conns = conns
+        ncols = max([int(c.max()) + 1 for c in conns if c.size] + [1])
+        keys, local = [], []
+        for conn in conns:
+            ne, k = conn.shape
+            rows = np.broadcast_to(conn[:, :, None], (ne, k, k)) - row_start
+            cols = np.broadcast_to(conn[:, None, :], (ne, k, k))
+            local.append((rows >= 0) & (rows < nrows))
+            keys.append((rows.astype(np.int64) * ncols + cols)[local[-1]])
+        keys, inverse = np.unique(np.concatenate(keys), return_inverse=True)
         r, self.indices = np.divmod(keys, ncols)
         self.indptr = np.searchsorted(r, np.arange(nrows + 1)).astype(np.int64)
-        self.slot = slot.reshape(ne, 4, 4)
+        self.slots, start = [], 0
+        for mask in local:
+            slot = np.full(mask.shape, -1, dtype=np.int64)
+            slot[mask] = inverse[start:start + mask.sum()]
+            start += mask.sum()
+            self.slots.append(slot)
+        self.slot = self.slots[0]
 
     def assemble(self, elements):
         """CSR values Σ_e over (ne, 4, 4) element matrices."""
@@ -84,8 +101,9 @@ class ElementPattern:
     def blocks3(self):
         """Pattern of the interleaved 3-D matrix with full 3×3 blocks.
 
-        Returns (indptr3, indices3, slot3) with slot3 (ne, 12, 12) the value
-        position of element entry (3a + i, 3b + j).
+        Returns (indptr3, indices3, slot3s) with slot3s[i] (ne, 3k, 3k) the
+        value position of entry (3a + p, 3b + q) of an element of set i (−1
+        where the row is not local).
         """
         length = np.diff(self.indptr)
         k = np.arange(len(self.indices)) - np.repeat(self.indptr[:-1], length)
@@ -100,9 +118,12 @@ class ElementPattern:
         indices3 = np.empty(indptr3[-1], dtype=np.int64)
         indices3[base.ravel()] = np.broadcast_to(
             3 * self.indices[:, None, None] + comp[None, None, :], base.shape).ravel()
-        slot3 = base[self.slot]                        # (ne, 4, 4, 3, 3)
-        slot3 = slot3.transpose(0, 1, 3, 2, 4).reshape(len(self.conn), 12, 12)
-        return indptr3, indices3, slot3
+        slot3s = []
+        for slot in self.slots:
+            ne, n = slot.shape[:2]
+            s3 = np.where(slot[..., None, None] >= 0, base[slot], -1)  # (ne,n,n,3,3)
+            slot3s.append(s3.transpose(0, 1, 3, 2, 4).reshape(ne, 3 * n, 3 * n))
+        return indptr3, indices3, slot3s
 
 
 def kron_identity(indptr, indices, values):

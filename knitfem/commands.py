@@ -7,7 +7,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .options import KnitError, KnitOptions
-from .pattern import Jersey, LoopShape, jersey_fabric, min_yarn_distance
+from .pattern import HOLDS, Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
 __all__ = ["dofs", "pattern", "run", "deform"]
 
@@ -60,7 +60,7 @@ def dofs(comm):
     volume_options(opts)
     if opts.finish("knitfem dofs"):
         return
-    fabric = jersey_fabric(jersey, hold_top=True)
+    fabric = jersey_fabric(jersey, hold="top")
     emb = embedding_from_options(opts, comm, fabric)
     full = FullModel(comm, fabric, Material())
     # constraint_kind lists every constraint of the fabric on every rank
@@ -203,14 +203,17 @@ VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
          "catenary": "front", "cantilever": "front"}
 
 
-def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod):
+def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod,
+                  hold="top", turn=(0, 0, 0)):
     """The options that define a scene's problem (a checkpoint's fingerprint)."""
     if scene in ("catenary", "cantilever"):
         shape = dict(length=length, segments=nseg,
                      **(dict(span=span) if scene == "catenary" else {}))
     else:
         shape = dict(rows=jersey.rows, cols=jersey.cols,
-                     **(dict(tilt=tilt) if scene == "hanging" else {}))
+                     **(dict(tilt=tilt, hold=hold) if scene == "hanging" else {}))
+    if any(turn):
+        shape["start_rotation"] = list(turn)
     return dict(scene=scene, radius=jersey.radius, **shape, rho=material.rho,
                 EA=material.EA, EI=material.EI, gravity=material.gravity,
                 damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
@@ -283,6 +286,12 @@ def run(comm):
                        "cantilever)", 1)
     tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
                         "held course (hanging: 90 horizontal, 0 hanging)")
+    hold = opts.getChoice("hold", "top", HOLDS, "hanging scene: held by the loop "
+                          "heads of the top course, the first stitch of every "
+                          "course, or the top course's first stitch")
+    turn = opts.getReals("start_rotation", (0.0, 0.0, 0.0), "start the fabric "
+                         "rigidly turned from its rest by ax,ay,az [deg] about x, "
+                         "then y, then z (through its centroid)", 3)
     pull = pull_from_options(opts, jersey)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
@@ -327,7 +336,7 @@ def run(comm):
     try:
         try:
             fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
-                                 tilt, pull)
+                                 tilt, pull, hold, turn)
         except ValueError as err:
             raise KnitError(str(err)) from None
         system = build_system(comm, opts, fabric, material)
@@ -345,7 +354,7 @@ def run(comm):
         lod = getattr(getattr(system, "embedding", None), "volume", None)
         problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
                                 PETSc.Options().getInt("knit_quadrature", 4),
-                                lod and (lod.n1, lod.n2))
+                                lod and (lod.n1, lod.n2), hold, turn)
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
@@ -432,7 +441,7 @@ def fitting_metrics(fabric, P, nq=4):
 
     max and RMS Green–Lagrange axial strain, the smallest centreline distance
     between different yarns over 2r (penetration when < 1) and the largest
-    contact residual |P_f(s_a) − P_g(s_b) − d_ab| over r.
+    contact residual max |g| (``constraints.Contacts``) over r.
     """
     from . import constraints as cons
     from .yarn import YarnElements
@@ -443,8 +452,8 @@ def fitting_metrics(fabric, P, nq=4):
     el = YarnElements(fabric.X.reshape(-1, 3), conn, 1.0, 1.0, 0.0, nq=nq)
     e = el.strain(P.reshape(-1, 3))
     dist = min_yarn_distance(list(P), 16)[0]
-    c = cons.build(fabric)
-    res = np.linalg.norm(c.residual(P.reshape(-1, 3))[c.kind == "contact"], axis=1)
+    contacts, _ = cons.build(fabric)
+    res = np.abs(contacts.values(P.reshape(-1, 3)[contacts.cols])).max(axis=1)
     return dict(max_strain=float(np.abs(e).max()),
                 rms_strain=float(np.sqrt(np.mean(e**2))),
                 min_distance_over_2r=float(dist / (2 * fabric.radius)),

@@ -33,6 +33,10 @@ class Fabric:
         thickness directions in the world (identity unless the scene turned
         the fabric); bounding volumes are boxes along these axes.
     loads : (yarn, s, F) — constant point forces F (n, 3) [N] at P_f(s).
+    start : (R, centre) — the start state is the rest X turned rigidly by the
+        rotation R about ``centre`` (``start_points``); rest quantities
+        (energies, contacts) stay those of X, world holds are taken where the
+        start state puts them.
     """
 
     X: np.ndarray
@@ -44,6 +48,7 @@ class Fabric:
     frame: np.ndarray = field(default_factory=lambda: np.eye(3))
     loads: tuple = field(default_factory=lambda: (np.zeros(0, int), np.zeros(0),
                                                  np.zeros((0, 3))))
+    start: tuple = field(default_factory=lambda: (np.eye(3), np.zeros(3)))
 
     @property
     def nyarn(self):
@@ -65,6 +70,20 @@ class Fabric:
         np.add.at(Q, (idx[0][:, None], idx[1]),
                   bspline.basis(u)[..., None] * np.asarray(F)[mine][:, None])
         return Q.reshape(-1, 3)
+
+    def turn(self, points):
+        """Points (…, 3) turned as the start turns the fabric (``start``)."""
+        R, centre = self.start
+        return (points - centre) @ np.asarray(R).T + centre
+
+    def start_points(self):
+        """Control points (nyarn, ncp, 3) of the start state: X turned."""
+        return self.turn(self.X)
+
+    def started_turned(self, R):
+        """The same fabric (same rest) started turned by R about its centroid."""
+        return replace(self, start=(np.asarray(R, float),
+                                    self.X.reshape(-1, 3).mean(axis=0)))
 
     def rotated(self, R, centre):
         """The same fabric turned rigidly by the rotation R about ``centre``."""

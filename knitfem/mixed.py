@@ -193,8 +193,9 @@ def independent_rows(rows, rhs):
 class MixedModel(EmbeddedModel):
     """The mixed mechanical system of a ``FullModel`` through a ``MixedSpace``.
 
-    Offers the interface of ``ReducedModel`` (M, m, C, c, d, Qg, forces,
-    stiffness, rest_state, full_state, project, …) with q = [α; ε_F].
+    Offers the interface of ``ReducedModel`` (M, m, C, Qg, forces,
+    stiffness, constraints, rest_state, full_state, project, …) with
+    q = [α; ε_F].
     ``reduced`` is the reduced model's ``Embedding`` of the same volume,
     kept for the error indicator. Collective.
     """
@@ -222,63 +223,102 @@ class MixedModel(EmbeddedModel):
         return int(self.space.full.sum())
 
     def _constraints(self):
-        """C Γ_mix: world constraints and the contacts with a full side."""
-        allc, space = cons.build(self.fabric), self.space
-        nent = np.diff(allc.indptr)
-        row = np.repeat(np.arange(allc.count), nent)
-        w = space.full[allc.indices] * np.abs(allc.values)
-        frac = np.zeros((allc.count, 2))
-        side = ((np.arange(len(row)) - allc.indptr[row]) >= 4).astype(int)  # a | b
-        np.add.at(frac, (row, side), w)
-        tot = np.zeros((allc.count, 2))
-        np.add.at(tot, (row, side), np.abs(allc.values))
-        frac = frac / np.maximum(tot, 1e-300)
-        contact = allc.kind == "contact"
-        touches = frac.max(1) > 0
-        keep = np.where(contact, frac.max(1) >= CONTACT_SIDE_FULL, touches)
-        pure = ~contact & ~touches                           # world rows in α only
-        lay, comm = self.layout, self.comm
-        mine = keep & (allc.owner >= lay.yarn_start) & (allc.owner < lay.yarn_end)
-        sel = np.flatnonzero(mine)
-        ent = np.flatnonzero(np.repeat(mine, nent))
-        local_row = np.repeat(np.arange(len(sel)), nent[sel])
-        indptr, indices, values = space.csr(local_row, allc.indices[ent],
-                                          allc.values[ent], len(sel))
-        rhs = allc.rhs[sel]
-        # world rows touching no full point: independent rows in α, rank 0
-        wsel = np.flatnonzero(pure)
-        ent = np.flatnonzero(np.repeat(pure, nent))
-        wi, wj, wv = space.csr(np.repeat(np.arange(len(wsel)), nent[wsel]),
-                             allc.indices[ent], allc.values[ent], len(wsel))
-        dense = sp.csr_matrix((wv, wj, wi), shape=(len(wsel), max(space.ncol, 1)))
+        """The kept rows of the full model's constraints through Γ_mix, and
+        the world holds touching no full point as independent rows in α.
+
+        g_mix(q) = [S g(Γ_mix q); c_w α − d_w], C_mix = [S C(Γ_mix q) Γ_mix; c_w],
+        S the selection of the kept rows (contacts with a full side, holds
+        touching a full point): each rank keeps rows of its own yarns.
+        """
+        full, space = self.full, self.space
+        contacts, holds = cons.build(self.fabric)
+        w = np.abs(contacts.U[:, 0])                                # |r weights|
+        wf = w * space.full[contacts.cols]
+        frac = np.stack([wf[:, :4].sum(1) / w[:, :4].sum(1),
+                         wf[:, 4:].sum(1) / w[:, 4:].sum(1)], axis=1) \
+            if contacts.count else np.zeros((0, 2))
+        keep_c = frac.max(1) >= CONTACT_SIDE_FULL
+        hrow = np.repeat(np.arange(holds.count), np.diff(holds.indptr))
+        touches = np.zeros(holds.count, bool)
+        np.logical_or.at(touches, hrow, space.full[holds.indices]
+                         & (holds.values != 0))
+        self.contacts_kept = int(keep_c.sum())
+        self.nonlinear_constraints = self.contacts_kept > 0
+        # the kept rows among the full model's own (same order and owners)
+        kind = full.constraint_kind
+        keep = np.empty(len(kind), bool)
+        keep[kind == "contact"] = keep_c
+        keep[kind != "contact"] = touches
+        a = full.constraints
+        kept = np.flatnonzero(keep[a.start:a.start + a.nlocal])
+        self.kept_rows = (3 * kept[:, None] + np.arange(3)).ravel()
+        # world holds in α only: independent rows (rank 0)
+        pure = holds.select(~touches)
+        wi, wj, wv = space.csr(np.repeat(np.arange(pure.count), np.diff(pure.indptr)),
+                               pure.indices, pure.values, pure.count)
+        dense = sp.csr_matrix((wv, wj, wi), shape=(pure.count, max(space.ncol, 1)))
         acols = space.volcol[space.alpha]
-        c_w, d_w = independent_rows(dense[:, acols].toarray(), allc.rhs[wsel])
-        self.world_rank, self.world_rows = len(c_w), len(wsel)
-        self.contacts_kept = int((keep & contact).sum())
-        if comm.rank == 0 and len(c_w):
-            nz = np.abs(c_w) > 0
-            extra = (np.concatenate([[0], np.cumsum(nz.sum(1))]) + indptr[-1],
-                     acols[np.nonzero(nz)[1]], c_w[nz])
-            indptr = np.concatenate([indptr, extra[0][1:]])
-            indices = np.concatenate([indices, extra[1]])
-            values = np.concatenate([values, extra[2]])
-            rhs = np.concatenate([rhs, d_w])
-        k = len(indptr) - 1
+        c_w, d_w = independent_rows(dense[:, acols].toarray(), pure.rhs)
+        self.world_rank, self.world_rows = len(c_w), pure.count
+        comm = self.comm
+        if comm.rank:
+            c_w, d_w = c_w[:0], d_w[:0]
+        nz = np.abs(c_w) > 0
+        world = kron_identity(np.concatenate([[0], np.cumsum(nz.sum(1))]),
+                              acols[np.nonzero(nz)[1]], c_w[nz])
+        self.d_world = d_w.ravel()
+        # C_mix: the product's kept rows, then the world rows
+        self.eps0 = self.Gamma.createVecLeft()
+        self.product = full.C.matMult(self.Gamma)
+        indptr, cols, _ = self.product.getValuesCSR()
+        length = np.diff(indptr)[self.kept_rows]
+        self.take = (np.repeat(indptr[self.kept_rows] - np.concatenate(
+            [[0], np.cumsum(length)[:-1]]), length) + np.arange(length.sum()))
+        self.C_indptr = np.concatenate([[0], np.cumsum(length),
+                                        length.sum() + world[0][1:]]).astype(
+                                            PETSc.IntType)
+        self.C_indices = np.concatenate([cols[self.take], world[1]]).astype(
+            PETSc.IntType)
+        self.world_values = world[2]
+        k = len(self.kept_rows) + len(self.d_world)
         K = comm.tompi4py().allreduce(k)
-        n, N = space.ncol_local, space.ncol
-        csr = (indptr, indices, values)
-        self.c = create_aij(comm, (k, K), (n, N), csr)
-        self.C = create_aij(comm, (3 * k, 3 * K), (3 * n, 3 * N),
-                            kron_identity(*csr), bsize=3)
-        self.d = self.C.createVecLeft()
-        self.d.getArray()[:] = rhs.ravel()
+        n, N = 3 * space.ncol_local, 3 * space.ncol
+        self.C = create_aij(comm, (k, K), (n, N), (self.C_indptr, self.C_indices,
+                                                  self._values()), bsize=3)
+        self.mu_full = full.C.createVecLeft()
+        self.g_full = full.C.createVecLeft()
+        self.Cq = self.C.createVecLeft()
+
+    def _values(self):
+        """C_mix's values from the product S C Γ_mix (last formed) and c_w."""
+        return np.concatenate([self.product.getValuesCSR()[2][self.take],
+                               self.world_values])
+
+    def constraint_jacobian(self, q):
+        """C_mix(q) = [S C(Γ_mix q) Γ_mix; c_w] (collective), in place."""
+        if self.nonlinear_constraints:
+            self.full.constraint_jacobian(self.full_state(q, self.eps0))
+            self.full.C.matMult(self.Gamma, self.product)
+            self.C.setValuesCSR(self.C_indptr, self.C_indices, self._values())
+            self.C.assemble()
+        return self.C
+
+    def constraint_residual(self, q, g):
+        """g_mix(q) = [S g(Γ_mix q); c_w α − d_w] into g (collective)."""
+        self.full.constraint_residual(self.full_state(q, self.eps0), self.g_full)
+        self.C.mult(q, self.Cq)
+        out, nk = g.getArray(), len(self.kept_rows)
+        out[:nk] = self.g_full.getArray(readonly=True)[self.kept_rows]
+        out[nk:] = self.Cq.getArray(readonly=True)[nk:] - self.d_world
 
     # -- state ---------------------------------------------------------------
-    def rest_state(self):
-        """q at rest: the kept volume control points and the full points' X."""
+    def rest_state(self, turned=False):
+        """q at rest: the kept volume control points and the full points' X;
+        turned as the fabric starts (``start_state``) with ``turned``."""
         q = self.M.createVecRight()
-        q.getArray()[:] = self.space.state(self.fabric.X.reshape(-1, 3),
-                                           self.space.volume.flat)
+        turn = self.fabric.turn if turned else (lambda p: p)
+        q.getArray()[:] = self.space.state(turn(self.fabric.X.reshape(-1, 3)),
+                                           turn(self.space.volume.flat))
         return q
 
     # -- mechanics -----------------------------------------------------------
@@ -290,9 +330,15 @@ class MixedModel(EmbeddedModel):
         self.full.forces(self.eps, self.epsdot, self.Qfull)
         G.multTranspose(self.Qfull, Q)
 
-    def stiffness(self, q):
-        """Γ_mixᵀ K(Γ_mix q) Γ_mix by PtAP, the symbolic product reused."""
-        K = self.full.stiffness(self.full_state(q, self.eps))
+    def stiffness(self, q, mu=None, weight=1.0):
+        """Γ_mixᵀ (K + w Σ μ_i ∇²g_i)(Γ_mix q) Γ_mix by PtAP, the symbolic
+        product reused; the kept rows' μ placed among the full model's."""
+        if mu is not None:
+            self.mu_full.zeroEntries()
+            self.mu_full.getArray()[self.kept_rows] = \
+                mu.getArray(readonly=True)[:len(self.kept_rows)]
+            mu = self.mu_full
+        K = self.full.stiffness(self.full_state(q, self.eps), mu, weight)
         with EV_PTAP:
             if self.K is None:
                 self.K = K.PtAP(self.space.Gamma)
@@ -302,8 +348,9 @@ class MixedModel(EmbeddedModel):
         return self.K
 
     def destroy(self):
-        for A in (self.M, self.m, self.C, self.c, self.d, self.Qg, self.K,
-                  self.eps, self.epsdot, self.Qfull, self._proj):
+        for A in (self.M, self.m, self.C, self.Qg, self.K, self.eps, self.epsdot,
+                  self.Qfull, self._proj, self.eps0, self.product, self.mu_full,
+                  self.g_full, self.Cq):
             if A is not None:
                 A.destroy()
 

@@ -1,15 +1,18 @@
 """The full yarn-level model assembled in PETSc (generalised coordinates ε).
 
-    M ε̈ = Q(ε, ε̇) + Cᵀλ,   C ε = d,
+    M ε̈ = Q(ε, ε̇) + C(ε)ᵀλ,   g(ε) = 0,
 
 M = m ⊗ I₃ the constant mass, Q = −∂E/∂ε + Q_g − c_d M ε̇ (elastic, gravity,
-mass-proportional damping), C = c ⊗ I₃ the constant contact and world
-constraints. Every rank owns whole yarns, so element kernels need no ghost
-values; only C couples ranks (contacts between neighbouring courses).
+mass-proportional damping), g the frame-indifferent contacts and the world
+holds (``constraints``), C = ∂g/∂ε. Every rank owns whole yarns, so element
+kernels need no ghost values; only the constraints couple ranks (contacts
+between neighbouring courses, ``constraint_assembly``).
 
 The model is a "mechanical system" for ``solvers/``: mass M (and its scalar
-factor m), constraints C, c, d, and the callbacks ``forces`` and
-``stiffness``. The reduced model in ``reduced.py`` offers the same interface.
+factor m), the constraints (``constraint_residual``, ``constraint_jacobian``
+C, whose pattern is fixed) and the callbacks ``forces`` and ``stiffness``
+(K + w Σ μ_i ∇²g_i). The reduced model in ``reduced.py`` offers the same
+interface.
 
 The element loops run in the kernels of ``kernels.py`` (compiled by default,
 the numpy reference with ``kernels="numpy"``); they add the elastic forces
@@ -24,6 +27,7 @@ from petsc4py import PETSc
 
 from . import constraints as cons
 from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from .constraint_assembly import ConstraintAssembly
 from .kernels import yarn_kernels
 from .yarn import YarnElements
 
@@ -96,12 +100,28 @@ class FullModel:
             self.m = create_aij(comm, (n, N), (n, N), m_csr)
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
-            self._build_constraints()
-            indptr3, indices3, slot3 = self.pattern.blocks3()
+            self.constraints = cons_asm = ConstraintAssembly(
+                comm, lay, *cons.build(fabric))
+            self.C = cons_asm.C
+            x = self.start_state()
+            cons_asm.jacobian(x)                 # C valid from the start
+            x.destroy()
+            self.nonlinear_constraints = cons_asm.nonlinear
+            self.ncon, self.constraint_kind = cons_asm.count, cons_asm.kind
+            # the yarn elements' Hessians in their own pattern (``pattern``)
+            _, yarn_indices3, (slot3,) = self.pattern.blocks3()
             self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
+            self.K_values = np.zeros(len(yarn_indices3))
+            # K's pattern: the yarn elements and the contacts (their curvature)
+            tangent = ElementPattern([self.conn, cons_asm.element_cols()],
+                                     lay.cp_start, lay.ncp_local)
+            indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
             self.indptr3 = indptr3.astype(PETSc.IntType)
             self.indices3 = indices3.astype(PETSc.IntType)
-            self.K_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
+            self.tangent_slot = np.empty(len(self.K_values), dtype=np.int64)
+            self.tangent_slot[slot3.ravel()] = slot3_yarn.ravel()
+            self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
+            cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
             self.K = None
             self.Qg = self.M.createVecLeft()
             G = self.M.createVecRight()
@@ -111,32 +131,22 @@ class FullModel:
                 lay.yarn_start, lay.yarn_end).ravel()
             G.destroy()
             self.total_mass = self.m.getRowSum().sum()
-        for A, name in ((self.m, "full_m_"), (self.M, "full_M_"),
-                        (self.C, "full_C_")):
+        for A, name in ((self.m, "full_m_"), (self.M, "full_M_")):
             A.setOptionsPrefix(name)
-
-    def _build_constraints(self):
-        lay, comm = self.layout, self.comm
-        allc = cons.build(self.fabric)
-        lo, hi = np.searchsorted(allc.owner, [lay.yarn_start, lay.yarn_end])
-        self.ncon, self.con_start, self.ncon_local = allc.count, lo, hi - lo
-        self.constraint_kind = allc.kind
-        ptr = allc.indptr[lo:hi + 1]
-        csr = (ptr - ptr[0], allc.indices[ptr[0]:ptr[-1]], allc.values[ptr[0]:ptr[-1]])
-        nl, N = lay.ncp_local, lay.ncp
-        k, K = self.ncon_local, self.ncon
-        self.c = create_aij(comm, (k, K), (nl, N), csr)
-        self.C = create_aij(comm, (3 * k, 3 * K), (3 * nl, 3 * N),
-                            kron_identity(*csr), bsize=3)
-        self.d = self.C.createVecLeft()
-        self.d.getArray()[:] = allc.rhs[lo:hi].ravel()
 
     # -- state ---------------------------------------------------------------
     def rest_state(self):
         """ε at rest (Vec, block size 3)."""
+        return self._state(self.fabric.X)
+
+    def start_state(self):
+        """ε at the start: the rest turned by ``fabric.start`` (Vec)."""
+        return self._state(self.fabric.start_points())
+
+    def _state(self, X):
         x = self.M.createVecRight()
         lay = self.layout
-        x.getArray()[:] = self.fabric.X[lay.yarn_start:lay.yarn_end].ravel()
+        x.getArray()[:] = X[lay.yarn_start:lay.yarn_end].ravel()
         return x
 
     def yarn_points(self, x):
@@ -175,20 +185,36 @@ class FullModel:
             applied_forces(self, v, Q)
             self.add_elastic_forces(x, Q)
 
+    def constraint_residual(self, x, g):
+        """g(ε) into g (a Vec of C's row layout). Collective."""
+        self.constraints.residual(x, g)
+
+    def constraint_jacobian(self, x):
+        """C(ε) = ∂g/∂ε, written in place (fixed pattern). Collective."""
+        with EV_ASSEMBLY:
+            return self.constraints.jacobian(x)
+
     def stiffness_values(self, x):
-        """Values of K = ∂²E/∂ε² in the local CSR pattern (indptr3, indices3):
-        K = Σ_e K_e, written into ``K_values`` (returned) through the slots of
-        the element entries."""
+        """Values of K = ∂²E/∂ε² in the yarn elements' CSR pattern
+        (``pattern.blocks3``): K = Σ_e K_e, written into ``K_values``
+        (returned) through the slots of the element entries."""
         with EV_TANGENT:
             self.kernels.hessian_values(self.yarn_points(x), self.slot3, self.K_values)
             return self.K_values
 
-    def stiffness(self, x):
-        """K = ∂²E/∂ε² (symmetric, full 3×3 blocks, block size 3; reused).
+    def stiffness(self, x, mu=None, weight=1.0):
+        """K = ∂²E/∂ε² + w Σ_i μ_i ∇²g_i (symmetric, full 3×3 blocks, block
+        size 3; reused), in the pattern (indptr3, indices3) of the yarn
+        elements and the contacts; μ a Vec of C's row layout, or None.
 
-        On one rank K holds ``K_values`` itself (``createAIJWithArrays``), so
-        the kernel's values are K's; on several, they are copied in."""
-        values = self.stiffness_values(x)
+        On one rank K holds ``tangent_values`` itself
+        (``createAIJWithArrays``); on several, they are copied in."""
+        values = self.tangent_values
+        values.fill(0.0)
+        values[self.tangent_slot] = self.stiffness_values(x)
+        if mu is not None and weight:
+            with EV_TANGENT:
+                self.constraints.add_curvature(mu, weight, values)
         with EV_ASSEMBLY:
             if self.K is None:
                 self.K = self._create_stiffness(values)
@@ -215,6 +241,7 @@ class FullModel:
         return self.elements.strain(self.yarn_points(x))
 
     def destroy(self):
-        for A in (self.m, self.M, self.c, self.C, self.d, self.Qg, self.K):
+        for A in (self.m, self.M, self.Qg, self.K):
             if A is not None:
                 A.destroy()
+        self.constraints.destroy()

@@ -79,16 +79,32 @@ class KnitOptions:
 
     def getInts(self, name, default, text, count, minimum=None):
         """``count`` comma-separated integers, e.g. ``-knit_lod 5,5``."""
-        raw = self._raw(name, ",".join(map(str, default)), text)
-        if raw is None:
-            return tuple(default)
         wants = f"{count} comma-separated integers" + (
             f" >= {minimum}" if minimum is not None else "")
+        value = self._numbers(name, default, text, count, int, wants)
+        if minimum is not None and min(value) < minimum:
+            self._fail(name, ",".join(map(str, value)), wants)
+        return value
+
+    def getReals(self, name, default, text, count):
+        """``count`` comma-separated finite reals, e.g. ``-knit_start_rotation
+        0,45,0``."""
+        value = self._numbers(name, default, text, count, float,
+                              f"{count} comma-separated real numbers")
+        if not np.all(np.isfinite(value)):
+            self._fail(name, ",".join(map(str, value)), "finite real numbers")
+        return value
+
+    def _numbers(self, name, default, text, count, kind, wants):
+        raw = self._raw(name, ",".join(f"{v:g}" if kind is float else str(v)
+                                       for v in default), text)
+        if raw is None:
+            return tuple(default)
         try:
-            value = tuple(int(v) for v in raw.split(","))
+            value = tuple(kind(v) for v in raw.split(","))
         except ValueError:
             self._fail(name, raw, wants)
-        if len(value) != count or (minimum is not None and min(value) < minimum):
+        if len(value) != count:
             self._fail(name, raw, wants)
         return value
 

@@ -164,15 +164,27 @@ def min_yarn_distance(yarns, samples_per_segment=8):
     return best
 
 
-def jersey_fabric(jersey, hold_top=False):
-    """The ``Fabric`` of a jersey; ``hold_top`` fixes the top course's heads."""
+HOLDS = ("top", "side", "corner")
+
+
+def jersey_fabric(jersey, hold=None):
+    """The ``Fabric`` of a jersey, held (fixed points) by ``hold``: "top" the
+    loop heads of the top course, "side" the heads of the first stitch of
+    every course, "corner" the head of the top course's first stitch, or
+    None (free)."""
     from .fabric import Fabric
 
     X = np.stack([jersey.control_points(f) for f in range(jersey.rows)])
     k, sa, sb = jersey.contacts()
     fab = Fabric(X, jersey.radius, contacts=(k, sa, k + 1, sb))
-    if hold_top:
-        top = jersey.rows - 1
-        s = jersey.heads(top)
-        fab.fixed = (np.full(len(s), top), s)
+    top = jersey.rows - 1
+    heads = jersey.heads(top)
+    if hold == "top":
+        fab.fixed = (np.full(len(heads), top), heads)
+    elif hold == "side":
+        fab.fixed = (np.arange(jersey.rows), np.full(jersey.rows, heads[0]))
+    elif hold == "corner":
+        fab.fixed = (np.array([top]), heads[:1])
+    elif hold is not None:
+        raise ValueError(f"hold {hold!r}: use one of {', '.join(HOLDS)}")
     return fab

@@ -196,6 +196,11 @@ class EmbeddedModel:
     def strain(self, q):
         return self.full.strain(self.full_state(q, self.eps))
 
+    def start_state(self):
+        """The state at the start: the rest turned by ``fabric.start``, in
+        range(Γ) since Γ reproduces rigid motions exactly."""
+        return self.rest_state(turned=True)
+
     def project(self, eps, q):
         """Mass-weighted least squares q = (ΓᵀMΓ)⁻¹ Γᵀ M ε (yarn level → this
         model), by a Cholesky factorisation of ΓᵀMΓ (``-<kind>_project_``)."""
@@ -217,11 +222,27 @@ class EmbeddedModel:
         return q
 
 
-class ReducedModel(EmbeddedModel):
+class LinearConstraints:
+    """Constraints linear in the system's state q: g = C q − d, C constant."""
+
+    nonlinear_constraints = False
+
+    def constraint_residual(self, q, g):
+        """g = C q − d into g (collective)."""
+        self.C.mult(q, g)
+        g.axpy(-1.0, self.d)
+
+    def constraint_jacobian(self, q):
+        """C (constant)."""
+        return self.C
+
+
+class ReducedModel(LinearConstraints, EmbeddedModel):
     """The reduced mechanical system of a ``FullModel`` through an ``Embedding``.
 
-    Offers the interface the integrators use (M, m, C, c, d, Qg, forces,
-    stiffness, …). Collective.
+    Offers the interface the integrators use (M, m, C, d, Qg, forces,
+    stiffness, …). Its constraints are the world holds only, linear in α.
+    Collective.
     """
 
     kind = "reduced"
@@ -247,23 +268,22 @@ class ReducedModel(EmbeddedModel):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""
         from . import constraints as cons
 
-        allc = cons.build(self.fabric)
-        world = np.flatnonzero(allc.kind != "contact")
+        _, allc = cons.build(self.fabric)
         vol = self.embedding.volume
-        rows = np.zeros((len(world), vol.size))
+        rows = np.zeros((allc.count, vol.size))
         X = self.fabric.X.reshape(-1, 3)
-        for r, i in enumerate(world):
-            sl = slice(allc.indptr[i], allc.indptr[i + 1])
+        for r in range(allc.count):
+            sl = slice(allc.indptr[r], allc.indptr[r + 1])
             cols, vals = vol.weights(*vol.embed(X[allc.indices[sl]]))
             np.add.at(rows[r], cols.ravel(), (allc.values[sl, None] * vals).ravel())
-        d = allc.rhs[world]
-        if len(world):
+        d = allc.rhs
+        if allc.count:
             U, S, Vt = np.linalg.svd(rows, full_matrices=False)
             rank = int(np.sum(S > 1e-10 * S[0]))
             c, d = Vt[:rank], (U[:, :rank].T @ d) / S[:rank, None]
         else:
             c, d = rows, d
-        self.world_rank, self.world_rows = len(c), len(world)
+        self.world_rank, self.world_rows = len(c), allc.count
         comm, NV = self.comm, vol.size
         nrow = len(c) if comm.rank == 0 else 0
         nv = even_split(comm, NV)
@@ -271,18 +291,19 @@ class ReducedModel(EmbeddedModel):
         nz = np.abs(cc) > 0
         csr = (np.concatenate([[0], np.cumsum(nz.sum(1))]), np.nonzero(nz)[1],
                cc[nz])
-        self.c = create_aij(comm, (nrow, len(c)), (nv, NV), csr)
         self.C = create_aij(comm, (3 * nrow, 3 * len(c)), (3 * nv, 3 * NV),
                             kron_identity(*csr), bsize=3)
         self.d = self.C.createVecLeft()
         if comm.rank == 0:
             self.d.getArray()[:] = d.ravel()
 
-    def rest_state(self):
-        """α at rest: the volume's control points (Vec, block size 3)."""
+    def rest_state(self, turned=False):
+        """α at rest: the volume's control points (Vec, block size 3); turned
+        as the fabric starts (``start_state``) with ``turned``."""
         a = self.M.createVecRight()
         lo, hi = a.getOwnershipRange()
-        a.getArray()[:] = self.embedding.volume.flat.ravel()[lo:hi]
+        flat = self.embedding.volume.flat
+        a.getArray()[:] = (self.fabric.turn(flat) if turned else flat).ravel()[lo:hi]
         return a
 
     def forces(self, alpha, alphadot, Q):
@@ -297,9 +318,9 @@ class ReducedModel(EmbeddedModel):
             self.full.add_elastic_forces(self.eps, self.Qfull)
             G.multTransposeAdd(self.Qfull, Q, Q)
 
-    def stiffness(self, alpha):
+    def stiffness(self, alpha, mu=None, weight=1.0):
         """Γᵀ K(Γα) Γ: dense (``GroupedTangent``) or by PtAP, reusing the
-        symbolic product."""
+        symbolic product (linear constraints: no curvature, μ unused)."""
         x = self.full_state(alpha, self.eps)
         if self.dense is not None:
             return self._dense_stiffness(x)
@@ -348,6 +369,6 @@ class ReducedModel(EmbeddedModel):
             self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
 
     def destroy(self):
-        for A in (self.M, self.m, self.C, self.c, self.d, self.Qg, self.K):
+        for A in (self.M, self.m, self.C, self.d, self.Qg, self.K):
             if A is not None:
                 A.destroy()

@@ -3,10 +3,12 @@
 Axes: x along the courses, y along the wales and up, z through the
 thickness; gravity acts along −y.
 
-hanging     r × nc jersey, the top course held at its nc loop heads; the
-            fabric starts turned by ``tilt`` degrees about the line of the
-            held heads (90: horizontal, so it falls and swings down to hang;
-            0: already hanging, it only settles under its weight).
+hanging     r × nc jersey held by ``hold``: the nc loop heads of its top
+            course ("top"), the first stitch of every course ("side") or the
+            top course's first stitch ("corner"); the fabric starts turned
+            by ``tilt`` degrees about the x-parallel line through the held
+            heads (90: horizontal, so it falls and swings down to hang; 0:
+            already hanging, it only settles under its weight).
 pulled      r × nc jersey hanging from its top course (held at its loop
             heads, at rest, not turned), pulled at the loop head of one
             stitch by a constant point force: smooth far away, the loops
@@ -15,6 +17,10 @@ freefall    r × nc jersey, no world constraints.
 catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
             rest a circular arc of length L sagging in −y (stress free).
 cantilever  one straight yarn of length L along +x, clamped at the origin.
+
+Any scene can start rigidly turned from its rest (``start_rotation``: the
+rest, energies and contacts stay those of the unturned fabric, the holds
+are taken where the turned start puts them).
 """
 
 import numpy as np
@@ -24,7 +30,7 @@ from . import bspline
 from .fabric import Fabric
 from .pattern import jersey_fabric
 
-__all__ = ["SCENES", "make_fabric", "straight_yarn", "arc_yarn"]
+__all__ = ["SCENES", "make_fabric", "rotation", "straight_yarn", "arc_yarn"]
 
 SCENES = ("hanging", "pulled", "freefall", "catenary", "cantilever")
 
@@ -76,6 +82,19 @@ def tilted(fabric, degrees):
     return fabric.rotated(R, held.mean(axis=0))
 
 
+def rotation(degrees):
+    """R = R_z R_y R_x for angles (a_x, a_y, a_z) in degrees: a turn about x,
+    then about y, then about z (fixed world axes)."""
+    R = np.eye(3)
+    for axis, a in enumerate(np.radians(degrees)):
+        c, s = np.cos(a), np.sin(a)
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        Ra = np.eye(3)
+        Ra[i, i], Ra[i, j], Ra[j, i], Ra[j, j] = c, -s, s, c
+        R = Ra @ R
+    return R
+
+
 def pulled(jersey, stitch, force):
     """The hanging jersey with a point force [N] at the loop head of
     ``stitch`` = (column, course)."""
@@ -83,17 +102,27 @@ def pulled(jersey, stitch, force):
     if not (0 <= c < jersey.cols and 0 <= r < jersey.rows):
         raise ValueError(f"pulled stitch ({c}, {r}) lies outside the "
                          f"{jersey.cols} x {jersey.rows} stitches of the fabric")
-    fab = jersey_fabric(jersey, hold_top=True)
+    fab = jersey_fabric(jersey, hold="top")
     fab.loads = (np.array([r]), jersey.heads(r)[[c]],
                  np.asarray(force, dtype=float).reshape(1, 3))
     return fab
 
 
 def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4,
-                tilt=0.0, pull=None):
-    """The ``Fabric`` of a scene; ``pull`` = (stitch, force) for "pulled"."""
+                tilt=0.0, pull=None, hold="top", start_rotation=(0, 0, 0)):
+    """The ``Fabric`` of a scene; ``pull`` = (stitch, force) for "pulled",
+    ``hold`` for "hanging"; started turned by ``start_rotation`` (degrees
+    about x, then y, then z, about the fabric's centroid)."""
+    fabric = scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold)
+    if np.any(start_rotation):
+        fabric = fabric.started_turned(rotation(start_rotation))
+    return fabric
+
+
+def scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold):
+    """The ``Fabric`` of a scene at rest (``make_fabric``)."""
     if scene == "hanging":
-        return tilted(jersey_fabric(jersey, hold_top=True), tilt)
+        return tilted(jersey_fabric(jersey, hold=hold), tilt)
     if scene == "pulled":
         return pulled(jersey, *pull)
     if scene == "freefall":

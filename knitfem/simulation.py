@@ -11,7 +11,7 @@ PNG; every ``checkpoint_every`` steps it writes a checkpoint. The files are
 the business of ``output.OutputDirectory``; the driver only calls it.
 
 Every step ends with one cheap collective check (the state finite, the
-constraint drift C ε − d within ``drift_tol``, no stop signal pending), so a
+constraint drift |g(ε)| within ``drift_tol``, no stop signal pending), so a
 failure is reported at the step where it happened and a bad state never
 reaches a checkpoint. A failure stops the run with one line naming the step,
 the time and the quantity (``SimulationError``); a PETSc error inside a step
@@ -69,7 +69,7 @@ class Simulation:
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.verbose, self.view, self.animation = verbose, view, animation
         self.adapt = adapt          # called after every step (knitfem.adapt)
-        self.x, self.v = system.rest_state(), system.rest_state()
+        self.x, self.v = system.start_state(), system.start_state()
         self.v.zeroEntries()
         self.t, self.step_count = 0.0, 0
         self.stats = {"newton": 0, "ksp": 0, "rejected": 0}
@@ -131,10 +131,8 @@ class Simulation:
         kinetic = 0.5 * self.v.dot(self.Mv)
         elastic = s.elastic_energy(self.x)
         potential = -s.Qg.dot(self.x)
-        s.C.mult(self.x, self.r)
-        self.r.axpy(-1.0, s.d)
-        self.full.C.mult(eps, self.rf)
-        self.rf.axpy(-1.0, self.full.d)
+        s.constraint_residual(self.x, self.r)
+        self.full.constraint_residual(eps, self.rf)
         strain = s.strain(self.x)
         max_strain = mpi.allreduce(np.abs(strain).max() if strain.size else 0.0,
                                    op=__import__("mpi4py").MPI.MAX)
@@ -304,15 +302,14 @@ class Simulation:
     # -- the loop ------------------------------------------------------------
     def guard(self):
         """After every step, one reduction (collective): raise SimulationError
-        if the state is not finite or C ε − d exceeds ``drift_tol``; return
+        if the state is not finite or |g(ε)| exceeds ``drift_tol``; return
         the stop signal any rank received (0: none)."""
         s = self.system
         x, v = self.x.getArray(readonly=True), self.v.getArray(readonly=True)
         bad = not (np.isfinite(x).all() and np.isfinite(v).all())
         drift = 0.0
         if not bad:
-            s.C.mult(self.x, self.r)
-            self.r.axpy(-1.0, s.d)
+            s.constraint_residual(self.x, self.r)
             r = self.r.getArray(readonly=True)
             drift = float(np.abs(r).max()) if r.size else 0.0
         flags = np.array([float(bad), drift, float(interrupts.pending())])

@@ -1,16 +1,17 @@
 """Time integrators for a constrained mechanical system.
 
-    M ε̈ = Q(ε, ε̇) + Cᵀλ,   C ε = d.
+    M ε̈ = Q(ε, ε̇) + C(ε)ᵀλ,   g(ε) = 0,   C = ∂g/∂ε.
 
-A *system* (``knitfem.model.FullModel`` or ``knitfem.reduced.ReducedModel``)
-supplies M, its scalar factor m (M = m ⊗ I₃), C, c, d, ``forces(x, v, Q)``,
-``stiffness(x)`` (K = ∂²E/∂ε²) and ``material.damping`` c_d (Q_d = −c_d M ε̇).
-The integrators never see a yarn.
+A *system* (``knitfem.model.FullModel``, ``knitfem.reduced.ReducedModel``,
+``knitfem.mixed.MixedModel``) supplies M, ``forces(x, v, Q)``,
+``stiffness(x, μ, w)`` (K = ∂²E/∂ε² + w Σ μ_i ∇²g_i), the constraints
+``constraint_residual(x, g)`` and ``constraint_jacobian(x)`` (C, a fixed
+pattern; ``nonlinear_constraints`` says whether it depends on ε) and
+``material.damping`` c_d (Q_d = −c_d M ε̇). The integrators never see a yarn.
 
-Drift control is by projection at the velocity level: every step asks
-C ε_{n+1} = d exactly (C ε̇_{n+1} = (d − C ε̂)/κ for an end point
-ε_{n+1} = ε̂ + κ ε̇_{n+1}), so constraint drift stays at the round-off of the
-linear solves.
+Drift control is at the position level: every step asks g(ε_{n+1}) = 0 of
+the end point ε_{n+1} = ε̂ + κ ε̇_{n+1} itself, as an equation of its Newton
+solve, so constraint drift stays at the Newton tolerance.
 
 Every integrator has ``step(t, ε, ε̇, t_stop)`` (one accepted step, in place;
 returns the step ``dt`` taken and iteration counts), ``dt`` (the next step)
@@ -83,27 +84,33 @@ def _MPI_MAX():
 
 
 class SymplecticEuler:
-    """Explicit symplectic Euler on the constant saddle point.
+    """Explicit symplectic Euler, the constraints held by SHAKE:
 
-        [m cᵀ] [v_{n+1}^k]   [(M v_n + h Q(ε_n, v_n))^k]
-        [c 0 ] [  μ^k    ] = [ (d^k − (c ε_n)^k) / h    ],   ε_{n+1} = ε_n + h v_{n+1},
+        [M     C_nᵀ] [v_{n+1}]   [M v_n + h Q(ε_n, v_n)]
+        [C_n   0   ] [  μ    ] = [ −g(ε_n + h v_{n+1})/h ],   ε_{n+1} = ε_n + h v_{n+1},
 
-    for each component k = x, y, z: the scalar saddle point [m cᵀ; c 0] is a
-    third of the 3-D size, factorised once (``-<kind>_explicit_`` KSP) and
-    solved for three right-hand sides a step.
+    C_n = C(ε_n): the constraint force acts along the constraint normals at
+    the start of the step and the end point satisfies g = 0, solved by
+    iterations with the matrix at ε_n (a chord method, linear convergence by
+    the change of C over a step) until |g(ε_{n+1})| ≤ 1e-9 r. Linear
+    constraints need one solve, and the matrix (``-<kind>_explicit_`` KSP) is
+    factorised once a run; nonlinear ones, once a step.
     """
 
     name = "symplectic"
+    max_iterations = 50
 
     def __init__(self, system, dt, control=None):
         self.system, self.control = system, control or StepControl(dt)
-        self.saddle = SaddlePoint(system.m, system.c)
+        system.constraint_jacobian(system.start_state())
+        self.saddle = SaddlePoint(system.M, system.C)
         self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_")
         with EV_FACTOR:
-            self.ksp.setUp()
+            self._solve(self.ksp.setUp)
         self.rhs, self.sol = self.saddle.createVec(), self.saddle.createVec()
         self.Q, self.Mv = system.M.createVecLeft(), system.M.createVecLeft()
-        self.Cx = system.C.createVecLeft()
+        self.xe, self.g = system.M.createVecLeft(), system.C.createVecLeft()
+        self.tol = 1e-9 * system.fabric.radius
 
     @property
     def dt(self):
@@ -115,27 +122,51 @@ class SymplecticEuler:
     def set_state(self, st):
         self.control.set_state(st)
 
+    def _solve(self, solve=None):
+        """The saddle solve (or ``solve``, e.g. the set-up), a solver failure
+        as a SimulationError; returns the KSP iterations."""
+        with EV_SOLVE:
+            try:
+                solve_saddle(solve or (lambda: self.ksp.solve(self.rhs, self.sol)),
+                             self.ksp)
+            except SolverFailure as err:
+                raise SimulationError(str(err)) from None
+        return self.ksp.getIterationNumber()
+
     def step(self, t, x, v, t_stop=None):
         s, h = self.system, self.control.propose(t, t_stop)[0]
         s.forces(x, v, self.Q)
         s.M.mult(v, self.Mv)
         self.Mv.axpy(h, self.Q)
-        s.C.mult(x, self.Cx)
-        g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) / h
+        if s.nonlinear_constraints:
+            s.constraint_jacobian(x)
+            self.saddle.update(constraints=True)
         rhs_u, rhs_l = self.saddle.split(self.rhs)
-        mv = self.Mv.getArray(readonly=True)
-        vv = v.getArray()
-        its = 0
-        for k in range(3):
-            rhs_u[:] = mv[k::3]
-            rhs_l[:] = g[k::3]
-            with EV_SOLVE:
-                try:
-                    solve_saddle(lambda: self.ksp.solve(self.rhs, self.sol), self.ksp)
-                except SolverFailure as err:
-                    raise SimulationError(str(err)) from None
-            its += self.ksp.getIterationNumber()
-            vv[k::3] = self.saddle.split(self.sol)[0]
+        rhs_u[:] = self.Mv.getArray(readonly=True)
+        s.constraint_residual(x, self.g)
+        rhs_l[:] = -self.g.getArray(readonly=True) / h
+        its = self._solve()
+        vv = self.saddle.split(self.sol)[0]
+        for _ in range(self.max_iterations if s.nonlinear_constraints else 0):
+            self.xe.getArray()[:] = x.getArray(readonly=True) + h * vv
+            s.constraint_residual(self.xe, self.g)
+            g = self.g.getArray(readonly=True)
+            worst = s.comm.tompi4py().allreduce(np.abs(g).max() if g.size else 0.0,
+                                                op=_MPI_MAX())
+            if worst <= self.tol:
+                break
+            if not np.isfinite(worst):
+                raise SimulationError(f"constraint residual g not finite in SHAKE "
+                                      f"(h = {h:.3g} s)")
+            rhs_l -= g / h              # the chord step for the end point
+            its += self._solve()
+            vv = self.saddle.split(self.sol)[0]
+        else:
+            if s.nonlinear_constraints:
+                raise SimulationError(f"SHAKE did not hold the constraints in "
+                                      f"{self.max_iterations} iterations (|g| = "
+                                      f"{worst:.3e} m, h = {h:.3g} s)")
+        v.getArray()[:] = vv
         x.axpy(h, v)
         return {"newton": 0, "ksp": its, "rejected": 0, "dt": h}
 
@@ -148,13 +179,13 @@ class NewtonStepper:
     for a step h, the end point ε_{n+1} = ε̂ + κ v, the point where forces
     are evaluated, ε_f = (1 − w) ε_n + w ε_{n+1} (and ε̇_f alike), and
 
-        F_u = M (v − v̂) − σ Q(ε_f, ε̇_f) + Cᵀ μ,
-        F_λ = C v − (d − C ε̂) / κ,
+        F_u = M (v − v̂) − σ Q(ε_f, ε̇_f) + C(ε_{n+1})ᵀ μ,
+        F_λ = g(ε_{n+1}) / κ,
 
-    so C ε_{n+1} = d holds to the round-off of the solve at every step. With
-    K = ∂²E/∂ε² and Q_d = −c_d M ε̇ the Jacobian is [A Cᵀ; C 0],
+    so g(ε_{n+1}) = 0 holds to the Newton tolerance at every step. With
+    K = ∂²E/∂ε² and Q_d = −c_d M ε̇ the Jacobian is [A Cᵀ; C 0], C at ε_{n+1},
 
-        A = σ w κ K(ε_f) + (1 + σ w c_d) M,
+        A = σ w κ K(ε_f) + (1 + σ w c_d) M + κ Σ_i μ_i ∇²g_i,
 
     assembled as one AIJ matrix (or dense for the reduced model on one rank)
     and solved by ``-<kind>_ksp_type``, ``-<kind>_pc_type`` … (MUMPS LDLᵀ by
@@ -182,12 +213,14 @@ class NewtonStepper:
         self.system = system
         self.control = control or StepControl(dt)
         self.prefix = prefix = f"{system.kind}_"
-        K = system.stiffness(system.rest_state())
+        x0 = system.start_state()
+        K = system.stiffness(x0)
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle = SaddlePoint(self.A, system.C,
+        self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
                                   dense=getattr(system, "dense_saddle", False),
                                   prefix=prefix)
+        x0.destroy()
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
@@ -273,21 +306,23 @@ class NewtonStepper:
         fu, fl = self.saddle.split(F)
         fu[:] = self.Mv.getArray(readonly=True)
         if self.saddle.constrained:
-            s.C.multTranspose(self.mu, self.tmp)
+            s.constraint_jacobian(self.xe).multTranspose(self.mu, self.tmp)
             fu += self.tmp.getArray(readonly=True)
-            s.C.mult(self.v, self.Cx)
-            fl[:] = self.Cx.getArray(readonly=True) - self.g
+            s.constraint_residual(self.xe, self.Cx)
+            fl[:] = self.Cx.getArray(readonly=True) / self.kappa
 
     def _jacobian(self, snes, z, J, P):
         s = self.system
         self._unpack(z)
-        K = s.stiffness(self.xf)
-        K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         sw = self.sigma * self.w
+        K = s.stiffness(self.xf, self.mu if self.saddle.constrained else None,
+                        1.0 / sw)
+        K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         self.A.scale(sw * self.kappa)
         self.A.axpy(1.0 + sw * s.material.damping, s.M,
                     PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle.update()
+        s.constraint_jacobian(self.xe)
+        self.saddle.update(constraints=s.nonlinear_constraints)
 
     def _solve(self, h, stats):
         """Newton for the step h from (self.xn, self.vn): leaves ε_{n+1} in
@@ -295,9 +330,6 @@ class NewtonStepper:
         s = self.system
         self.h = h
         self.coefficients(h)
-        s.C.mult(self.xhat, self.Cx)
-        self.g = (s.d.getArray(readonly=True) - self.Cx.getArray(readonly=True)) \
-            / self.kappa
         c = self.control
         if c.adaptive:
             # the update of ε small against the local error tolerance
@@ -471,8 +503,9 @@ class GeneralizedAlpha(NewtonStepper):
     ε̂ = ε_n + h ε̇_n + h²(½ − β)a_n − κ(ε̇_n + h(1 − γ)a_n).
 
     The start projects ε̇₀ onto C ε̇ = 0 and solves M a₀ = Q₀ + Cᵀλ,
-    C a₀ = 0 (the same saddle point with A = M), so C a_n = 0, C ε̇_n = 0
-    and C ε_n = d at every step. a_n approximates ε̈(t_n + (αm − αf)h);
+    C a₀ = −ε̇₀ᵀ∇²g ε̇₀ (the same saddle point with A = M, C at ε₀), so the
+    start is consistent with g = 0 to second order; every step then asks
+    g(ε_{n+1}) = 0. a_n approximates ε̈(t_n + (αm − αf)h);
     the local error of ε_{n+1} is c h³ ε⃛, c = β − ⅙ + (αm − αf)/2,
     estimated from the last three positions (``PositionHistory``; with
     h ε⃛ ≈ a_{n+1} − a_n on the first two steps). Predictor: a_{n+1} ≈ a_n.
@@ -529,10 +562,18 @@ class GeneralizedAlpha(NewtonStepper):
         s = self.system
         self.A.zeroEntries()
         self.A.axpy(1.0, s.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle.update()
+        s.constraint_jacobian(x)
+        self.saddle.update(constraints=True)
         rhs, sol = self.saddle.createVec(), self.saddle.createVec()
         s.M.mult(v, self.Mv)
+        self.mu.set(0.0)
         self._start_solve(rhs, sol, self.Mv, v)
+        # g quadratic and C ε̇₀ = 0: ε̇₀ᵀ∇²g ε̇₀ = 2 (g(ε₀ + ε̇₀) − g(ε₀))
+        self.xe.waxpy(1.0, v, x)
+        s.constraint_residual(self.xe, self.mu)
+        s.constraint_residual(x, self.Cx)
+        self.mu.axpy(-1.0, self.Cx)
+        self.mu.scale(-2.0)
         s.forces(x, v, self.Q)
         self._start_solve(rhs, sol, self.Q, self.a)
         self.lam.getArray()[:] = self.saddle.split(sol)[1]
@@ -542,10 +583,10 @@ class GeneralizedAlpha(NewtonStepper):
         self.started = True
 
     def _start_solve(self, rhs, sol, b, out):
-        """[M Cᵀ; C 0] [out; ·] = [b; 0]."""
+        """[M Cᵀ; C 0] [out; ·] = [b; self.mu]."""
         ru, rl = self.saddle.split(rhs)
         ru[:] = b.getArray(readonly=True)
-        rl[:] = 0.0
+        rl[:] = self.mu.getArray(readonly=True)
         try:
             solve_saddle(lambda: self.ksp.solve(rhs, sol), self.ksp)
         except SolverFailure as err:

@@ -74,14 +74,7 @@ class SaddlePoint:
         if dense:
             self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
         self.fields = self.nest.getNestISs()[0]
-        # A's global column j, owned by rank r, is column j − a_r + k_r of K
-        a = np.asarray(A.getOwnershipRanges())
-        k = np.asarray(self.K.getOwnershipRanges()) if not dense else a * 0
-        indptr, cols, _ = A.getValuesCSR()
-        owner = np.searchsorted(a, cols, side="right") - 1
-        indptr = np.append(indptr, np.full(self.nl, indptr[-1]))   # C rows: none
-        self.csr = (indptr.astype(PETSc.IntType),
-                    (cols - a[owner] + k[owner]).astype(PETSc.IntType))
+        self.csr, self.order = self._value_layout(A, C, dense)
         tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
         self.P = self.K if tau == 0 else self.regularized(tau)
 
@@ -95,13 +88,45 @@ class SaddlePoint:
         shift.destroy()
         return P
 
-    def update(self):
-        """Refresh K after A's values changed (same nonzero pattern)."""
+    def _value_layout(self, A, C, dense):
+        """K's local rows in CSR (global columns of K) made of A's and Cᵀ's
+        rows, then C's, and the permutation ``order`` that takes the
+        concatenated values of A, Cᵀ and C to it."""
+        if dense:
+            return None, None
+        # a global column j of a block, owned by rank r, is column
+        # j − (block's first on r) + (K's first on r) (+ A's rows on r for λ)
+        a = np.asarray(A.getOwnershipRanges())
+        c = np.asarray(C.getOwnershipRanges())
+        k = np.asarray(self.K.getOwnershipRanges())
+
+        def to_k(cols, ranges, shift):
+            owner = np.searchsorted(ranges, cols, side="right") - 1
+            return cols - ranges[owner] + k[owner] + shift[owner]
+
+        rows, cols = [], []
+        for M, ranges, shift, row0 in ((A, a, 0 * a, 0), (self.Ct, c, np.diff(a), 0),
+                                       (C, a, 0 * a, self.nu)):
+            indptr, j, _ = M.getValuesCSR()
+            rows.append(row0 + np.repeat(np.arange(len(indptr) - 1), np.diff(indptr)))
+            cols.append(to_k(j, ranges, shift))
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        order = np.argsort(rows, kind="stable")
+        indptr = np.searchsorted(rows[order], np.arange(self.nu + self.nl + 1))
+        return (indptr.astype(PETSc.IntType),
+                cols[order].astype(PETSc.IntType)), order
+
+    def update(self, constraints=False):
+        """Refresh K after A's values changed, and C's with ``constraints``
+        (same nonzero patterns)."""
+        if self.constrained and constraints:
+            self.C.transpose(self.Ct)
         if self.aij is not None:
             self.nest.convert("aij", self.aij)
             self.aij.convert("dense", self.K)
         elif self.constrained:
-            values = self.A.getValuesCSR()[2]
+            values = np.concatenate([M.getValuesCSR()[2]
+                                     for M in (self.A, self.Ct, self.C)])[self.order]
             for K in (self.K, self.P) if self.P is not self.K else (self.K,):
                 K.setValuesCSR(*self.csr, values)
                 K.assemble()

@@ -1,10 +1,10 @@
 """Static equilibrium of a constrained mechanical system.
 
-    F_u = −Q(ε, 0) + Cᵀμ = 0,   F_λ = C ε − d = 0,
+    F_u = −Q(ε, 0) + C(ε)ᵀμ = 0,   F_λ = g(ε) = 0,
 
 by Newton (PETSc SNES, prefix ``-static_``) with pseudo-transient
 continuation (Kelley & Keyes, SIAM J. Numer. Anal. 35, 1998): iteration k
-solves
+solves, with K = ∂²E/∂ε² + Σ_i μ_i ∇²g_i and C at ε,
 
     [K + σ_k M  Cᵀ] [δε]     [F_u]
     [C          0 ] [δμ] = − [F_λ],     (ε, μ) ← (ε, μ) + (δε, δμ),
@@ -67,11 +67,13 @@ class StaticSolver:
     def __init__(self, system, steps=1, length=None, growth=1.5):
         self.system, self.steps, self.growth = system, steps, growth
         self.length = length or system.fabric.radius
-        K = system.stiffness(system.rest_state())
+        x0 = system.start_state()
+        K = system.stiffness(x0)
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle = SaddlePoint(self.A, system.C,
+        self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
                                   dense=getattr(system, "dense_saddle", False))
+        x0.destroy()
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix("static_")
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
@@ -120,10 +122,10 @@ class StaticSolver:
         fu, fl = self.saddle.split(F)
         fu[:] = -self.Q.getArray(readonly=True)
         if self.saddle.constrained:
-            s.C.multTranspose(self.mu, self.tmp)
+            s.constraint_jacobian(self.x).multTranspose(self.mu, self.tmp)
             fu += self.tmp.getArray(readonly=True)
-            s.C.mult(self.x, self.Cx)
-            fl[:] = self.Cx.getArray(readonly=True) - s.d.getArray(readonly=True)
+            s.constraint_residual(self.x, self.Cx)
+            fl[:] = self.Cx.getArray(readonly=True)
 
     def _shift(self, snes):
         """σ_k = σ_0 γ^(−k) min_(j≤k) |F_j| / |F_0|; σ_0 = max_i |F_i/m_i| / length."""
@@ -142,10 +144,12 @@ class StaticSolver:
         s = self.system
         self._unpack(z)
         sigma = self._shift(snes)
-        s.stiffness(self.x).copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        mu = self.mu if self.saddle.constrained else None
+        s.stiffness(self.x, mu).copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         if sigma:
             self.A.axpy(sigma, s.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle.update()
+        s.constraint_jacobian(self.x)
+        self.saddle.update(constraints=s.nonlinear_constraints)
 
     def solve(self, x, monitor=None):
         """Equilibrium from the initial guess x (overwritten). Returns Newton its."""

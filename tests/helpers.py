@@ -10,8 +10,8 @@ from knitfem.reduced import Embedding, ReducedModel
 from knitfem.volume import BoundingVolume
 
 
-def jersey(rows=2, cols=2, hold_top=False):
-    return jersey_fabric(Jersey(rows, cols), hold_top=hold_top)
+def jersey(rows=2, cols=2, hold=None):
+    return jersey_fabric(Jersey(rows, cols), hold=hold)
 
 
 def models(comm, fabric, material=None, lod=(5, 5)):

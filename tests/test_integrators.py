@@ -64,18 +64,20 @@ def test_measured_order_on_a_swinging_yarn(cls, order, EA):
     assert order - 0.1 <= np.log2(ratio) <= order + 0.6
 
 
-def test_constraints_hold_to_round_off_under_step_control():
-    fab = jersey(2, 2, hold_top=True)
+def test_constraints_hold_to_newton_tolerance_under_step_control():
+    """g(ε_{n+1}) = 0 is solved with every step (to 1e-9 r); the contacts
+    being nonlinear, C(ε)v = 0 holds only to O(h)."""
+    fab = jersey(2, 2, hold="top")
     model = FullModel(SELF, fab, Material())
     control = StepControl(1e-4, adaptive=True, rtol=1e-3, atol=1e-6)
     integ = GeneralizedAlpha(model, 1e-4, control)
     x, v, n = integrate(integ, model, 0.02)
     r, rv = model.C.createVecLeft(), model.C.createVecLeft()
-    model.C.mult(x, r)
-    r.axpy(-1.0, model.d)
-    model.C.mult(v, rv)
-    assert n > 5 and r.norm(PETSc.NormType.INFINITY) < 1e-15
-    assert rv.norm(PETSc.NormType.INFINITY) < 1e-12
+    model.constraint_residual(x, r)
+    model.constraint_jacobian(x).mult(v, rv)
+    speed = v.norm(PETSc.NormType.INFINITY)
+    assert n > 5 and r.norm(PETSc.NormType.INFINITY) < 1e-9 * fab.radius
+    assert rv.norm(PETSc.NormType.INFINITY) < 1e-2 * speed
     assert np.abs(x.getArray() - fab.X.ravel()).max() > 1e-5      # it moved
 
 

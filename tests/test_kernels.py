@@ -48,7 +48,7 @@ def test_element_gradient_and_hessian_equal_reference(case):
 def test_assembled_gradient_and_values_equal_reference(case):
     y, x = elements(case)
     start = np.random.default_rng(5).normal(size=(y.ncp, 3))
-    _, indices3, slot = ElementPattern(y.conn, 0, y.ncp).blocks3()
+    _, indices3, (slot,) = ElementPattern(y.conn, 0, y.ncp).blocks3()
     out, values = {}, {}
     for kind in KINDS:
         k = yarn_kernels(y, kind)
@@ -76,7 +76,7 @@ def test_unknown_kind_is_refused():
 
 @pytest.fixture(scope="module")
 def full_models():
-    fab = jersey(3, 2, hold_top=True)
+    fab = jersey(3, 2, hold="top")
     models = {kind: FullModel(PETSc.COMM_WORLD, fab, Material(), kernels=kind)
               for kind in KINDS}
     yield models

@@ -25,7 +25,7 @@ LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches
 
 @pytest.fixture(scope="module")
 def fabric():
-    return jersey(6, 6, hold_top=True)
+    return jersey(6, 6, hold="top")
 
 
 def region(full, red, regions):
@@ -52,10 +52,16 @@ def test_all_full_is_the_full_model(serial, fabric):
     mix = mixed(full, red, np.ones(fabric.nyarn * fabric.ncp, bool))
     G = to_scipy(mix.space.Gamma).toarray()
     assert np.array_equal(G, np.eye(len(G)))             # Γ_mix = I, no α left
+    x, xf = mix.start_state(), full.start_state()
     for name in ("M", "C"):
+        mix.constraint_jacobian(x), full.constraint_jacobian(xf)
         A, B = to_scipy(getattr(mix, name)), to_scipy(getattr(full, name))
         assert abs(A - B).max() <= 1e-15 * abs(B).max()
-    assert np.array_equal(mix.d.getArray(), full.d.getArray())
+    g, gf = mix.C.createVecLeft(), full.C.createVecLeft()
+    x.getArray()[:] += 1e-2 * fabric.radius      # g itself, off the rest
+    xf.getArray()[:] = x.getArray()
+    mix.constraint_residual(x, g), full.constraint_residual(xf, gf)
+    assert np.allclose(g.getArray(), gf.getArray(), rtol=0, atol=1e-15 * fabric.radius)
     eps = states(mix)
     ref = states(full)
     assert np.abs(ref - fabric.X.ravel()).max() > 0.1 * fabric.radius   # it moved
@@ -101,18 +107,16 @@ def test_partial_region_map_and_constraints(serial, fabric):
     qa[:] = qa @ A.T + 1e-3
     assert np.allclose(mix.full_state(q).getArray().reshape(-1, 3), X @ A.T + 1e-3,
                        rtol=0, atol=1e-12)
-    allc = cons.build(fabric)
-    contact = allc.kind == "contact"
-    side = np.zeros((allc.count, 2))
-    for i in np.flatnonzero(contact):
-        sl = slice(allc.indptr[i], allc.indptr[i + 1])
-        full_w = mask[allc.indices[sl]] * np.abs(allc.values[sl])
-        side[i] = full_w[:4].sum(), full_w[4:].sum()
+    contacts, _ = cons.build(fabric)
+    side = np.zeros((contacts.count, 2))
+    for i in range(contacts.count):       # each side's curve-point weights
+        w = np.abs(contacts.U[i, 0])
+        full_w = mask[contacts.cols[i]] * w
+        side[i] = full_w[:4].sum() / w[:4].sum(), full_w[4:].sum() / w[4:].sum()
     assert mix.contacts_kept == np.sum(side.max(1) >= 0.5) > 0
-    assert mix.contacts_kept < contact.sum()
+    assert mix.contacts_kept < contacts.count
     r = mix.C.createVecLeft()
-    mix.C.mult(mix.rest_state(), r)
-    r.axpy(-1.0, mix.d)
+    mix.constraint_residual(mix.rest_state(), r)
     assert r.norm(PETSc.NormType.INFINITY) < 1e-15
     # it runs and lies between the two models' motions
     eps = states(mix)
@@ -210,12 +214,11 @@ def test_transfer_keeps_momentum(patches):
     p0, p1 = momentum(start, v), momentum(new, v2)
     assert np.abs(p0).min() > 1e-3 * full.total_mass
     assert np.allclose(p1, p0, rtol=1e-12, atol=0)
-    for state, rhs, scale in ((x2, new.d, fab.radius), (v2, None, 0.1)):
-        r = new.C.createVecLeft()
-        new.C.mult(state, r)
-        if rhs is not None:
-            r.axpy(-1.0, rhs)
-        assert r.norm(PETSc.NormType.INFINITY) < 1e-12 * scale
+    r, rv = new.C.createVecLeft(), new.C.createVecLeft()
+    new.constraint_residual(x2, r)
+    new.constraint_jacobian(x2).mult(v2, rv)
+    assert r.norm(PETSc.NormType.INFINITY) < 1e-12 * fab.radius
+    assert rv.norm(PETSc.NormType.INFINITY) < 1e-12 * 0.1
 
 
 # -- the command line ------------------------------------------------------------

@@ -43,20 +43,22 @@ def test_contacts_are_closest_approach_between_neighbours():
 
 
 def test_every_constraint_row_evaluates_its_point():
+    """The contacts' factors are the separation and tangents of the paired
+    curve points; the holds evaluate the top course's loop heads."""
     j = Jersey(3, 2)
-    fab = jersey_fabric(j, hold_top=True)
-    c = constraints.build(fab)
+    fab = jersey_fabric(j, hold="top")
+    contacts, holds = constraints.build(fab)
     X = fab.X.reshape(-1, 3)
-    assert np.abs(c.residual(X)).max() < 1e-15
-    dense = c.dense_rows(len(X))
+    assert np.abs(contacts.values(X[contacts.cols])).max() < 1e-15 * j.scale
+    assert np.abs(holds.residual(X)).max() < 1e-15
     ya, sa, yb, sb = fab.contacts
-    contact_rows = dense[c.kind == "contact"]
     P = fab.X
-    expect = np.stack([bspline.curve_points(P[a], s) - bspline.curve_points(P[b], t)
-                       for a, s, b, t in zip(ya, sa, yb, sb)])
-    # grouped by owner yarn, stable: contacts keep their order
-    assert np.allclose(contact_rows @ X, expect, atol=1e-15)
-    fixed_rows = dense[c.kind == "fixed"]
+    r, t_a = contacts.factors(X[contacts.cols])[1][:, :2].transpose(1, 0, 2)
+    sep = np.stack([bspline.curve_points(P[a], s) - bspline.curve_points(P[b], t)
+                    for a, s, b, t in zip(ya, sa, yb, sb)])
+    tan = np.stack([bspline.curve_points(P[a], s, 1) for a, s in zip(ya, sa)])
+    assert np.allclose(r, sep, rtol=0, atol=1e-15)
+    assert np.allclose(t_a, tan, rtol=0, atol=1e-13 * np.abs(tan).max())
     heads = bspline.curve_points(P[2], j.heads(2))
-    assert np.allclose(fixed_rows @ X, heads, atol=1e-15)
-    assert np.all(np.diff(c.owner) >= 0)
+    assert np.allclose(holds.rhs[holds.kind == "fixed"], heads, rtol=0, atol=1e-15)
+    assert np.all(holds.owner == 2)

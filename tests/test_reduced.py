@@ -13,7 +13,7 @@ SELF = PETSc.COMM_SELF
 
 @pytest.fixture(scope="module")
 def pair():
-    full, red = models(SELF, jersey(3, 3, hold_top=True))
+    full, red = models(SELF, jersey(3, 3, hold="top"))
     yield full, red
     red.destroy()
     full.destroy()
@@ -53,7 +53,7 @@ def test_reduced_tangent_equals_explicit_product(pair, dense):
 def test_grouped_tangent_equals_ptap(lod):
     """The compiled Γᵀ K Γ (``GroupedTangent``: points grouped by patch, some
     with neighbours in other patches) equals MatPtAP to 1e-12."""
-    full, red = models(SELF, jersey(4, 3, hold_top=True), lod=lod)
+    full, red = models(SELF, jersey(4, 3, hold="top"), lod=lod)
     groups = red.dense.args[5]
     assert len(groups) - 1 > (lod[0] - 3) * (lod[1] - 3)   # boundary groups too
     alpha = red.rest_state()
@@ -70,7 +70,7 @@ def test_grouped_tangent_equals_ptap(lod):
 def test_reduced_forces_equal_projected_full_forces():
     """Q^V = Γᵀ Q(Γα, Γα̇), with damping: the applied forces formed on the
     reduced side (Γᵀ Q_g − c_d M^V α̇) equal the projected full ones."""
-    full, red = models(SELF, jersey(3, 3, hold_top=True), Material(damping=3.0))
+    full, red = models(SELF, jersey(3, 3, hold="top"), Material(damping=3.0))
     rng = np.random.default_rng(4)
     alpha, alphadot = red.rest_state(), red.rest_state()
     alpha.getArray()[:] += 1e-4 * rng.standard_normal(alpha.getLocalSize())

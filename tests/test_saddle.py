@@ -30,7 +30,7 @@ def options():
 
 @pytest.fixture(scope="module")
 def model():
-    m = FullModel(COMM, jersey_fabric(Jersey(5, 8), hold_top=True), Material())
+    m = FullModel(COMM, jersey_fabric(Jersey(5, 8), hold="top"), Material())
     yield m
     m.destroy()
 

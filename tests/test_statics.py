@@ -127,7 +127,7 @@ def test_hanging_knit_mechanism_matches_damped_dynamics():
     """A jersey hanging from its top course is a mechanism at rest (K is
     singular on the constraint space): the static drape equals the end of a
     long damped dynamic run, and it is a minimum (K ≥ 0 on null(C))."""
-    fab = jersey(3, 2, hold_top=True)
+    fab = jersey(3, 2, hold="top")
     model, P, _, _ = static(fab, Material(), COMM)
     dyn = FullModel(COMM, fab, Material(damping=20.0))
     _, x, v = run(dyn, BackwardEuler, 1e-2, 300)

@@ -1,0 +1,175 @@
+"""The full model's constraints in PETSc: g(ε), its Jacobian C(ε) and the
+curvature Σ_i μ_i ∇²g_i, on whole yarns a rank.
+
+Rows. The vector constraints (contacts of ``constraints.Contacts``, holds of
+``constraints.Holds``) are ordered by the yarn that owns them, contacts of a
+yarn before its holds, whatever the number of ranks; each gives three scalar
+rows. A rank owns the rows of its yarns.
+
+C(ε) keeps one sparsity pattern for the run: a contact row couples the 8
+control points of its two yarn points in all three components (24 entries),
+a hold row 4 points in its own component. Its values are written in place.
+
+Ghosts. A contact owned by course k reads the control points of course
+k + 1, which may live on the next rank; the curvature term of a contact
+lands in the rows of both its yarns and reads its multipliers μ, which live
+on the rank of course k. Two PETSc scatters, set up once, bring both.
+
+The curvature is linear in μ with constant coefficients (g is quadratic),
+so its values in the tangent's CSR are B μ for a constant sparse B built
+once from the slots of the tangent's pattern (``curvature_operator``).
+"""
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from .assembly import create_aij
+
+__all__ = ["ConstraintAssembly"]
+
+
+def _block_is(comm, points):
+    """IS of the interleaved coordinates of ``points`` (block size 3)."""
+    return PETSc.IS().createBlock(3, np.asarray(points, dtype=PETSc.IntType),
+                                  comm=PETSc.COMM_SELF)
+
+
+class ConstraintAssembly:
+    """g, C(ε) and Σμ∇²g of ``contacts`` and ``holds`` on a ``YarnLayout``.
+
+    Collective on ``comm``. ``C`` is the Jacobian (rows: this rank's
+    constraints; columns: the yarn coordinates), ``kind`` the kind of every
+    vector constraint in global order ("contact", "fixed", "clamped"),
+    ``count`` their number.
+    """
+
+    def __init__(self, comm, layout, contacts, holds):
+        self.comm, self.layout = comm, layout
+        nct = contacts.count
+        owner = np.concatenate([contacts.owner, holds.owner])
+        order = np.argsort(owner, kind="stable")
+        position = np.empty(len(owner), dtype=np.int64)
+        position[order] = np.arange(len(owner))
+        self.kind = np.concatenate([np.full(nct, "contact"), holds.kind])[order] \
+            if len(owner) else np.zeros(0, "<U7")
+        self.count = len(owner)
+        lo, hi = np.searchsorted(owner[order], [layout.yarn_start, layout.yarn_end])
+        self.start, self.nlocal = int(lo), int(hi - lo)
+        cpos, hpos = position[:nct], position[nct:]
+        # this rank's contacts and holds, and their first local scalar row
+        self.mine = np.flatnonzero((cpos >= lo) & (cpos < hi))
+        self.mine_h = np.flatnonzero((hpos >= lo) & (hpos < hi))
+        crow, hrow = 3 * (cpos[self.mine] - lo), 3 * (hpos[self.mine_h] - lo)
+        length = np.zeros(3 * self.nlocal, dtype=np.int64)
+        length[crow[:, None] + np.arange(3)] = 24
+        length[hrow[:, None] + np.arange(3)] = 4
+        self.indptr = np.concatenate([[0], np.cumsum(length)]).astype(PETSc.IntType)
+        # control points read: the local contacts' 8 and the holds' 4
+        hi_ent = holds.indptr[self.mine_h][:, None] + np.arange(4)
+        hcols = holds.indices[hi_ent].reshape(-1, 4)
+        need, inv = np.unique(np.concatenate([contacts.cols[self.mine].ravel(),
+                                              hcols.ravel()]), return_inverse=True)
+        self.ghost_c = inv[:8 * len(self.mine)].reshape(-1, 8)
+        self.ghost_h = inv[8 * len(self.mine):].reshape(-1, 4)
+        # positions of the values: contact row 3v + j holds (k, d) at 3k + d
+        self.cslot = (self.indptr[crow][:, None, None, None]
+                      + 24 * np.arange(3)[None, :, None, None]
+                      + 3 * np.arange(8)[None, None, :, None]
+                      + np.arange(3)[None, None, None, :])          # (n, 3, 8, 3)
+        self.hslot = (self.indptr[hrow][:, None, None]
+                      + 4 * np.arange(3)[None, :, None]
+                      + np.arange(4)[None, None, :])                # (n, 3, 4)
+        indices = np.empty(self.indptr[-1], dtype=PETSc.IntType)
+        indices[self.cslot] = 3 * contacts.cols[self.mine][:, None, :, None] \
+            + np.arange(3)
+        indices[self.hslot] = 3 * hcols[:, None, :] + np.arange(3)[None, :, None]
+        self.values = np.zeros(self.indptr[-1])
+        self.values[self.hslot] = holds.values[hi_ent][:, None, :]
+        self.indices = indices
+        n, N = 3 * layout.ncp_local, 3 * layout.ncp
+        k, K = 3 * self.nlocal, 3 * self.count
+        self.C = create_aij(comm, (k, K), (n, N),
+                            (self.indptr, self.indices, self.values), bsize=3)
+        self.C.setOptionsPrefix("full_C_")
+        self.rhs = holds.rhs[self.mine_h]
+        self.hrow = hrow
+        self.crow = crow
+        self.points = PETSc.Vec().createSeq(3 * len(need), comm=PETSc.COMM_SELF)
+        x = self.C.createVecRight()
+        self.gather_points = PETSc.Scatter().create(
+            x, _block_is(comm, need), self.points, None)
+        x.destroy()
+        # contacts whose curvature reaches this rank's rows, and their μ
+        cp0, cp1 = layout.cp_start, layout.cp_end
+        touch = (contacts.cols >= cp0) & (contacts.cols < cp1)
+        self.touching = np.flatnonzero(touch.any(axis=1))
+        rows_mu = 3 * cpos[self.touching][:, None] + np.arange(3)
+        self.mu = PETSc.Vec().createSeq(rows_mu.size, comm=PETSc.COMM_SELF)
+        lam = self.C.createVecLeft()
+        self.gather_mu = PETSc.Scatter().create(
+            lam, PETSc.IS().createGeneral(rows_mu.ravel().astype(PETSc.IntType),
+                                          comm=PETSc.COMM_SELF), self.mu, None)
+        lam.destroy()
+        self.local = contacts.select(self.mine)          # rows of this rank
+        self.reaching = contacts.select(self.touching)   # into its tangent rows
+        self.nonlinear = contacts.count > 0               # C depends on ε
+        self.B = None
+
+    def _points(self, x):
+        """Control points read by this rank's rows, from the state x (Vec)."""
+        self.gather_points.scatter(x, self.points)
+        return self.points.getArray(readonly=True).reshape(-1, 3)
+
+    def residual(self, x, g):
+        """g(ε) into the Vec g (C's row layout). Collective."""
+        P = self._points(x)
+        out = g.getArray()
+        out[self.crow[:, None] + np.arange(3)] = \
+            self.local.values(P[self.ghost_c])
+        w = self.values[self.hslot]                                # (n, 3, 4)
+        out[self.hrow[:, None] + np.arange(3)] = \
+            np.einsum("nja,naj->nj", w, P[self.ghost_h]) - self.rhs
+
+    def jacobian(self, x):
+        """C(ε) = ∂g/∂ε, values written in place (collective); returns C."""
+        if self.nonlinear:
+            P = self._points(x)
+            grad = self.local.gradients(P[self.ghost_c])
+            self.values[self.cslot] = grad
+            self.C.setValuesCSR(self.indptr, self.indices, self.values)
+            self.C.assemble()
+        return self.C
+
+    def element_cols(self):
+        """Control points (n, 8) of the contacts that reach this rank's rows:
+        elements to add to the tangent's pattern."""
+        return self.reaching.cols
+
+    def curvature_operator(self, slot3, nnz):
+        """B (nnz × 3·len(touching)) with Σ_i μ_i ∇²g_i = B μ in the tangent's
+        CSR values; ``slot3`` (len(touching), 24, 24) the value slots of the
+        contact elements (−1 off this rank's rows). ∇²g = h ⊗ I₃, so entry
+        (3k + d, 3l + d) of contact c gets Σ_j μ_cj h_cjkl."""
+        h = self.reaching.hessians()           # (n, 3, 8, 8)
+        n = len(self.touching)
+        d = np.arange(3)
+        slots = slot3.reshape(n, 8, 3, 8, 3)[:, :, d, :, d]          # (3, n, 8, 8)
+        slots = np.broadcast_to(slots.transpose(1, 0, 2, 3)[:, None],
+                                (n, 3, 3, 8, 8))                    # c, j, d, k, l
+        cols = np.broadcast_to((3 * np.arange(n)[:, None] + np.arange(3))
+                               [:, :, None, None, None], slots.shape)
+        vals = np.broadcast_to(h[:, :, None], slots.shape)
+        keep = slots >= 0
+        self.B = sp.csr_matrix((vals[keep], (slots[keep], cols[keep])),
+                               shape=(nnz, 3 * n))
+        return self.B
+
+    def add_curvature(self, mu, weight, values):
+        """values += weight · B μ (the tangent's CSR values). Collective."""
+        self.gather_mu.scatter(mu, self.mu)
+        values += weight * (self.B @ self.mu.getArray(readonly=True))
+
+    def destroy(self):
+        for obj in (self.C, self.points, self.gather_points, self.mu, self.gather_mu):
+            obj.destroy()
