@@ -4,6 +4,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from knitfem.mixed import MixedModel, MixedSpace, VolumeWeights, stitch_mask
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric
 from knitfem.reduced import Embedding, ReducedModel
@@ -19,6 +20,18 @@ def models(comm, fabric, material=None, lod=(5, 5)):
     full = FullModel(comm, fabric, material or Material())
     volume = BoundingVolume.around(fabric.X.reshape(-1, 3), *lod, margin=fabric.radius)
     return full, ReducedModel(full, Embedding(comm, full.layout, fabric, volume))
+
+
+def mixed(full, red, mask):
+    """The mixed model of (full, reduced) with the full points ``mask``."""
+    weights = VolumeWeights(full.fabric, red.embedding.volume)
+    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask))
+
+
+def region(full, red, regions):
+    """Full points of stitch regions, widened to whole volume patches."""
+    w = VolumeWeights(full.fabric, red.embedding.volume)
+    return w.patch_mask(w.patches_of(stitch_mask(full.fabric, regions)))
 
 
 def gather(comm, vec):

@@ -5,19 +5,13 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from helpers import COMM, gather, jersey, models, run, to_scipy
+from helpers import COMM, gather, jersey, mixed, models, region, run, to_scipy
 from knitfem import constraints as cons
-from knitfem.mixed import (MixedModel, MixedSpace, VolumeWeights, parse_regions,
-                           stitch_mask)
+from knitfem.mixed import VolumeWeights, parse_regions
 from knitfem.options import KnitError
 from solvers.integrators import BackwardEuler
 
 SELF = PETSc.COMM_SELF
-
-
-def mixed(full, red, mask):
-    weights = VolumeWeights(full.fabric, red.embedding.volume)
-    return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask))
 
 
 LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches
@@ -26,12 +20,6 @@ LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches
 @pytest.fixture(scope="module")
 def fabric():
     return jersey(6, 6, hold="top")
-
-
-def region(full, red, regions):
-    """Full points of stitch regions, widened to whole volume patches."""
-    w = VolumeWeights(full.fabric, red.embedding.volume)
-    return w.patch_mask(w.patches_of(stitch_mask(full.fabric, regions)))
 
 
 @pytest.fixture(scope="module")
