@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 
 from knitfem.commands import (build_system, jersey_from_options,  # noqa: E402
-                              material_from_options)
+                              material_from_options, pose_from_options)
 from knitfem.options import KnitError, KnitOptions  # noqa: E402
 from knitfem.scenes import make_fabric  # noqa: E402
 from knitfem.simulation import Simulation  # noqa: E402
@@ -191,7 +191,7 @@ def build(comm):
     opts = KnitOptions()
     scene = opts.getChoice("scene", "hanging", ("hanging", "freefall"), "scene")
     jersey = jersey_from_options(opts)
-    tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg]")
+    tilt, hold, turn = pose_from_options(opts)
     material = material_from_options(opts)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
@@ -202,7 +202,7 @@ def build(comm):
         clock.append(time.perf_counter())
         return clock[-1] - clock[-2]
 
-    fabric = make_fabric(scene, jersey, tilt=tilt)
+    fabric = make_fabric(scene, jersey, tilt=tilt, hold=hold, start_rotation=turn)
     t_fabric = lap()
     system = build_system(comm, opts, fabric, material)
     t_model = lap()

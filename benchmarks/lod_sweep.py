@@ -2,6 +2,7 @@
 
     .venv/bin/python -m benchmarks.lod_sweep -bench_sizes 7x7 -bench_t_end 3
     .venv/bin/python -m benchmarks.lod_sweep -bench_sizes 15x30 -bench_tag 15x30
+    .venv/bin/python -m benchmarks.lod_sweep -bench_sizes 7x7 -knit_hold corner -knit_tilt 0 -bench_tag corner
     .venv/bin/python -m benchmarks.lod_sweep -bench_plot   # tables, figure
 
 The hanging scene of ``knitfem run`` with the full model (the reference)

@@ -219,6 +219,20 @@ def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod,
                 damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
 
 
+def pose_from_options(opts):
+    """(tilt, hold, start rotation) of a scene's fabric from -knit_tilt,
+    -knit_hold and -knit_start_rotation."""
+    tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
+                        "held course (hanging: 90 horizontal, 0 hanging)")
+    hold = opts.getChoice("hold", "top", HOLDS, "hanging scene: held by the loop "
+                          "heads of the top course, the first stitch of every "
+                          "course, or the top course's first stitch")
+    turn = opts.getReals("start_rotation", (0.0, 0.0, 0.0), "start the fabric "
+                         "rigidly turned from its rest by ax,ay,az [deg] about x, "
+                         "then y, then z (through its centroid)", 3)
+    return tilt, hold, turn
+
+
 def integrator_from_options(opts):
     """The integrator of -knit_integrator with its step control: fixed steps
     under -knit_dt, else error-controlled (-knit_rtol, -knit_atol). Returns
@@ -284,14 +298,7 @@ def run(comm):
                         positive=True)
     nseg = opts.getInt("segments", 40, "segments of the single yarn (catenary, "
                        "cantilever)", 1)
-    tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
-                        "held course (hanging: 90 horizontal, 0 hanging)")
-    hold = opts.getChoice("hold", "top", HOLDS, "hanging scene: held by the loop "
-                          "heads of the top course, the first stitch of every "
-                          "course, or the top course's first stitch")
-    turn = opts.getReals("start_rotation", (0.0, 0.0, 0.0), "start the fabric "
-                         "rigidly turned from its rest by ax,ay,az [deg] about x, "
-                         "then y, then z (through its centroid)", 3)
+    tilt, hold, turn = pose_from_options(opts)
     pull = pull_from_options(opts, jersey)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)

@@ -350,7 +350,7 @@ class MixedModel(EmbeddedModel):
     def destroy(self):
         for A in (self.M, self.m, self.C, self.Qg, self.K, self.eps, self.epsdot,
                   self.Qfull, self._proj, self.eps0, self.product, self.mu_full,
-                  self.g_full, self.Cq):
+                  self.g_full, self.Cq, self.dq, self.deps):
             if A is not None:
                 A.destroy()
 

@@ -23,6 +23,7 @@ the model's own CSR arrays, so no copy reaches PETSc.
 from dataclasses import dataclass
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from . import constraints as cons
@@ -159,6 +160,11 @@ class FullModel:
             return x.copy()
         x.copy(out)
         return out
+
+    def yarn_move(self, dx):
+        """max |δε_i| of the local part ``dx`` (array) of an update (collective)."""
+        local = np.abs(dx).max() if dx.size else 0.0
+        return self.comm.tompi4py().allreduce(local, op=MPI.MAX)
 
     def gather_points(self, x):
         """All control points (nyarn, ncp, 3) on rank 0 (None elsewhere)."""

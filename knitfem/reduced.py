@@ -180,12 +180,20 @@ class EmbeddedModel:
         self.Qg = G.createVecRight()
         G.multTranspose(full.Qg, self.Qg)
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
+        self.dq, self.deps = G.createVecRight(), G.createVecLeft()
 
     def full_state(self, q, out=None):
         """ε = Γ q."""
         out = out or self.Gamma.createVecLeft()
         self.Gamma.mult(q, out)
         return out
+
+    def yarn_move(self, dq):
+        """max |Γ δq| for the local part ``dq`` (array) of an update δq: how far
+        it moves a yarn control point (collective)."""
+        self.dq.getArray()[:] = dq
+        self.Gamma.mult(self.dq, self.deps)
+        return self.deps.norm(PETSc.NormType.INFINITY)
 
     def gather_points(self, q):
         return self.full.gather_points(self.full_state(q, self.eps))
@@ -369,6 +377,6 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
 
     def destroy(self):
-        for A in (self.M, self.m, self.C, self.d, self.Qg, self.K):
+        for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps):
             if A is not None:
                 A.destroy()

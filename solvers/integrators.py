@@ -45,19 +45,20 @@ def _default(prefix, name, value):
         opts.setValue(prefix + name, value)
 
 
-def step_convergence(saddle, step_tol):
-    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update of
-    the coordinates (not the multipliers) below ``step_tol()`` in max norm
-    (the residual of stiff yarns carries round-off far above any absolute
-    tolerance on |F|)."""
+def step_convergence(saddle, step_tol, system):
+    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update
+    that moves no yarn control point by more than ``step_tol()``
+    (``system.yarn_move``: the coordinates' update through ε = Γ q, not the
+    multipliers'). The residual of stiff yarns carries round-off far above
+    any absolute tolerance on |F|; and volume control points that carry
+    almost no yarn (a near-null mode of Γᵀ M Γ) may move freely in the
+    last iterations without moving a yarn."""
     R = PETSc.SNES.ConvergedReason
 
     def test(snes, it, norms):
         fnorm = norms[2]
         if it > 0:
-            du = saddle.split(snes.getSolutionUpdate())[0]
-            local = np.abs(du).max() if du.size else 0.0
-            ynorm = saddle.K.getComm().tompi4py().allreduce(local, op=_MPI_MAX())
+            ynorm = system.yarn_move(saddle.split(snes.getSolutionUpdate())[0])
         rtol, atol, _, max_it = snes.getTolerances()
         if not np.isfinite(fnorm):
             return R.DIVERGED_FNORM_NAN
@@ -230,7 +231,7 @@ class NewtonStepper:
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
         self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: self.newton_tol / self.kappa))
+            self.saddle, lambda: self.newton_tol / self.kappa, system))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         self.ksp = saddle_ksp(self.saddle, prefix)

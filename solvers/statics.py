@@ -96,7 +96,8 @@ class StaticSolver:
         """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
         shift is negligible (σ ≤ 1e-6 σ_0): a shifted step is small because
         σM is large, not because F is."""
-        base = step_convergence(self.saddle, lambda: 1e-9 * system.fabric.radius)
+        base = step_convergence(self.saddle, lambda: 1e-9 * system.fabric.radius,
+                                system)
         R = PETSc.SNES.ConvergedReason
 
         def test(snes, it, norms):
