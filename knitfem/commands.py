@@ -200,6 +200,7 @@ implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
 VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
+         "drape": "three_quarter",
          "catenary": "front", "cantilever": "front"}
 
 
@@ -231,6 +232,20 @@ def pose_from_options(opts):
                          "rigidly turned from its rest by ax,ay,az [deg] about x, "
                          "then y, then z (through its centroid)", 3)
     return tilt, hold, turn
+
+
+def colliders_from_options(opts):
+    """Rigid bodies of -knit_collider (``colliders.parse_colliders``)."""
+    from .colliders import parse_colliders
+
+    text = opts.getString("collider", "", "rigid bodies the yarns keep out of: "
+                          "sphere:cx,cy,cz,R, capsule:x0,y0,z0,x1,y1,z1,R, "
+                          "plane:px,py,pz,nx,ny,nz; several separated by ';' "
+                          "(the drape scene has its sphere)")
+    try:
+        return parse_colliders(text)
+    except ValueError as err:
+        raise KnitError(f"-knit_collider: {err}") from None
 
 
 def integrator_from_options(opts):
@@ -300,6 +315,7 @@ def run(comm):
                        "cantilever)", 1)
     tilt, hold, turn = pose_from_options(opts)
     pull = pull_from_options(opts, jersey)
+    bodies = colliders_from_options(opts)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     make_integrator = integrator_from_options(opts)
@@ -346,6 +362,7 @@ def run(comm):
                                  tilt, pull, hold, turn)
         except ValueError as err:
             raise KnitError(str(err)) from None
+        fabric.bodies = fabric.bodies + bodies
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
         PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, {n} coordinates "
@@ -362,6 +379,8 @@ def run(comm):
         problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
                                 PETSc.Options().getInt("knit_quadrature", 4),
                                 lod and (lod.n1, lod.n2), hold, turn)
+        if fabric.bodies:
+            problem["bodies"] = [b.describe() for b in fabric.bodies]
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,

@@ -37,6 +37,7 @@ class Fabric:
         rotation R about ``centre`` (``start_points``); rest quantities
         (energies, contacts) stay those of X, world holds are taken where the
         start state puts them.
+    bodies : rigid bodies the yarns keep out of (``colliders``).
     """
 
     X: np.ndarray
@@ -49,6 +50,7 @@ class Fabric:
     loads: tuple = field(default_factory=lambda: (np.zeros(0, int), np.zeros(0),
                                                  np.zeros((0, 3))))
     start: tuple = field(default_factory=lambda: (np.eye(3), np.zeros(3)))
+    bodies: tuple = ()
 
     @property
     def nyarn(self):

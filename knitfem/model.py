@@ -28,6 +28,7 @@ from petsc4py import PETSc
 
 from . import constraints as cons
 from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from .colliders import Barrier
 from .constraint_assembly import ConstraintAssembly
 from .kernels import yarn_kernels
 from .yarn import YarnElements
@@ -94,6 +95,9 @@ class FullModel:
                                          material.rho, material.EA, material.EI,
                                          nq=nq)
             self.kernels = yarn_kernels(self.elements, kernels)
+            self.barrier = Barrier(fabric.bodies, self.elements, fabric.radius,
+                                   material.rho * material.gravity) \
+                if fabric.bodies else None
             self.pattern = ElementPattern(self.conn, lay.cp_start, lay.ncp_local)
             n, N = lay.ncp_local, lay.ncp
             m_csr = (self.pattern.indptr, self.pattern.indices,
@@ -176,14 +180,25 @@ class FullModel:
 
     # -- mechanics -----------------------------------------------------------
     def elastic_energy(self, x):
-        """E(ε) = E_s + E_b (collective)."""
-        e = self.elements.energy(self.yarn_points(x))
+        """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
+        P = self.yarn_points(x)
+        e = self.elements.energy(P)
+        if self.barrier is not None:
+            e += self.barrier.energy(P)
         return self.comm.tompi4py().allreduce(e)
 
     def add_elastic_forces(self, x, Q):
-        """Q += −∂E/∂ε (E = E_s + E_b; local, no communication)."""
-        self.kernels.add_gradient(self.yarn_points(x), Q.getArray().reshape(-1, 3),
-                                  -1.0)
+        """Q += −∂E/∂ε (E = E_s + E_b + E_c; local, no communication)."""
+        P, out = self.yarn_points(x), Q.getArray().reshape(-1, 3)
+        self.kernels.add_gradient(P, out, -1.0)
+        if self.barrier is not None:
+            self.barrier.add_gradient(P, out, -1.0)
+
+    def min_collider_distance(self, x):
+        """Smallest distance of a yarn surface from a body (collective; inf
+        without bodies)."""
+        d = self.barrier.min_distance(self.yarn_points(x)) if self.barrier else np.inf
+        return self.comm.tompi4py().allreduce(d, op=MPI.MIN)
 
     def forces(self, x, v, Q):
         """Q = −∂E/∂ε + Q_g − c_d M ε̇ (collective)."""
@@ -201,11 +216,14 @@ class FullModel:
             return self.constraints.jacobian(x)
 
     def stiffness_values(self, x):
-        """Values of K = ∂²E/∂ε² in the yarn elements' CSR pattern
+        """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
         (``pattern.blocks3``): K = Σ_e K_e, written into ``K_values``
         (returned) through the slots of the element entries."""
         with EV_TANGENT:
-            self.kernels.hessian_values(self.yarn_points(x), self.slot3, self.K_values)
+            P = self.yarn_points(x)
+            self.kernels.hessian_values(P, self.slot3, self.K_values)
+            if self.barrier is not None:
+                self.barrier.add_hessian(P, self.slot3, self.K_values)
             return self.K_values
 
     def stiffness(self, x, mu=None, weight=1.0):

@@ -14,6 +14,9 @@ pulled      r × nc jersey hanging from its top course (held at its loop
             stitch by a constant point force: smooth far away, the loops
             deform near the pull (the scene of the mixed and adaptive models).
 freefall    r × nc jersey, no world constraints.
+drape       r × nc jersey, free, released horizontally (its thickness along
+            y) a little above a sphere of a quarter of its width under its
+            centre: it falls on it and drapes.
 catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
             rest a circular arc of length L sagging in −y (stress free).
 cantilever  one straight yarn of length L along +x, clamped at the origin.
@@ -27,12 +30,13 @@ import numpy as np
 from scipy.optimize import brentq
 
 from . import bspline
+from .colliders import Sphere
 from .fabric import Fabric
 from .pattern import jersey_fabric
 
 __all__ = ["SCENES", "make_fabric", "rotation", "straight_yarn", "arc_yarn"]
 
-SCENES = ("hanging", "pulled", "freefall", "catenary", "cantilever")
+SCENES = ("hanging", "pulled", "freefall", "drape", "catenary", "cantilever")
 
 
 def interpolating_control_points(points):
@@ -82,6 +86,21 @@ def tilted(fabric, degrees):
     return fabric.rotated(R, held.mean(axis=0))
 
 
+def drape(jersey, clearance=1e-3):
+    """The free ``jersey`` turned flat (R_x(−90°): y, its wales, to −z; z,
+    its thickness, to +y) and a sphere of radius width/4 under its centre,
+    its top ``clearance`` below the lowest yarn surface."""
+    fabric = jersey_fabric(jersey)
+    centre = fabric.X.reshape(-1, 3).mean(axis=0)
+    flat = fabric.rotated(rotation((-90, 0, 0)), centre)
+    X = flat.X.reshape(-1, 3)
+    width = np.ptp(X[:, 0])
+    R = width / 4
+    top = X[:, 1].min() - flat.radius - clearance
+    flat.bodies = (Sphere(np.array([centre[0], top - R, centre[2]]), R),)
+    return flat
+
+
 def rotation(degrees):
     """R = R_z R_y R_x for angles (a_x, a_y, a_z) in degrees: a turn about x,
     then about y, then about z (fixed world axes)."""
@@ -127,6 +146,8 @@ def scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold):
         return pulled(jersey, *pull)
     if scene == "freefall":
         return jersey_fabric(jersey)
+    if scene == "drape":
+        return drape(jersey)
     if scene == "catenary":
         X = arc_yarn(length, span, nseg)[None]
         return Fabric(X, radius, fixed=(np.zeros(2, int), np.array([0.0, nseg])))

@@ -78,6 +78,7 @@ class Simulation:
         self.series, self.series_from = None, None
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
+        self.min_collider = np.inf
         self.weights = self.full.m.createVecLeft()
         one = self.full.m.createVecRight()
         one.set(1.0)
@@ -136,7 +137,12 @@ class Simulation:
         strain = s.strain(self.x)
         max_strain = mpi.allreduce(np.abs(strain).max() if strain.size else 0.0,
                                    op=__import__("mpi4py").MPI.MAX)
-        return dict(kinetic_energy=kinetic, elastic_energy=elastic,
+        bodies = {}
+        if self.full.barrier is not None:        # the smallest over the frames
+            self.min_collider = min(self.min_collider,
+                                    self.full.min_collider_distance(eps))
+            bodies = dict(min_collider_distance=self.min_collider)
+        return dict(**bodies, kinetic_energy=kinetic, elastic_energy=elastic,
                     gravity_energy=potential,
                     total_energy=kinetic + elastic + potential,
                     max_constraint_violation=self.r.norm(PETSc.NormType.INFINITY),
@@ -457,6 +463,11 @@ class Simulation:
         if self.comm.rank == 0:
             flat = pts.reshape(-1, 3)
             low = flat[np.argmin(flat[:, 1])]
+            if self.system.fabric.bodies:
+                centre = self.system.fabric.bodies[0]
+                centre = getattr(centre, "centre", getattr(centre, "a", None))
+                if centre is not None:
+                    rec["lowest_point_below_collider_centre"] = float(centre[1] - low[1])
             rec.update(lowest_point=low.tolist(),
                        sag=float(self.initial_lowest - low[1]),
                        tip=bspline.curve_points(P[0], np.array([P.shape[1] - 3.0]))[0]

@@ -1,0 +1,195 @@
+"""Rigid bodies the knit rests on: spheres, capsules and planes.
+
+A body is its signed distance φ(x) (negative inside), with the outward
+normal n = ∇φ and the curvature ∇²φ:
+
+    sphere (c, R)     φ = |x − c| − R,          ∇²φ = (I − n nᵀ) / |x − c|,
+    capsule (a, b, R) φ = |x − q(x)| − R,       q the closest point of the
+                      segment ab; ∇²φ = (P − n nᵀ) / |x − q|, P = I − u uᵀ
+                      (u = (b − a)/|b − a|) along the segment, I at its ends,
+    plane (p, n)      φ = n·(x − p),            ∇²φ = 0.
+
+The yarn surface (centreline ± r) keeps out of a body by a smooth barrier on
+the distance of the surface, δ = φ(x) − r, at the yarn quadrature points:
+
+    E_c = Σ_{e,q} w_q |X'| f(δ_eq),   f(δ) = κ/3 (ĥ − δ)³ for δ < ĥ, else 0,
+
+a C² penalty (f, f', f'' vanish at δ = ĥ) acting within a gap ĥ of the
+surface. Its stiffness κ = 1e4 ρ g / ĥ² makes the barrier force per length
+at contact, κ ĥ², ten thousand times the yarn's weight per length, so a
+resting knit sinks into its gap by about 1 % of ĥ, and the energy at δ = 0,
+κ ĥ³ / 3, stops a yarn falling from centimetres. With x_eq = Σ_a b_a(u_q)
+p_{e,a}, the forces and the tangent are exact:
+
+    ∂E_c/∂p_a = Σ_q w_q |X'| f'(δ) b_a n,
+    ∂²E_c/∂p_a∂p_b = Σ_q w_q |X'| b_a b_b (f''(δ) n nᵀ + f'(δ) ∇²φ),
+
+4 × 4 blocks of the yarn element itself, so they enter the yarn elements'
+sparsity pattern: colliders never change it. Only the elements with a
+quadrature point within the gap are evaluated.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Sphere", "Capsule", "Plane", "Barrier", "parse_colliders", "KINDS"]
+
+
+def _unit(d):
+    """(d/|d|, |d|) row-wise."""
+    r = np.linalg.norm(d, axis=-1)
+    return d / np.maximum(r, 1e-300)[..., None], r
+
+
+@dataclass
+class Sphere:
+    centre: np.ndarray
+    R: float
+
+    def distance(self, x):
+        """(φ (n,), n (n, 3), ∇²φ (n, 3, 3)) at points x (n, 3)."""
+        n, r = _unit(x - self.centre)
+        H = (np.eye(3) - n[:, :, None] * n[:, None, :]) / np.maximum(r, 1e-300)[:, None, None]
+        return r - self.R, n, H
+
+    def describe(self):
+        return f"sphere centre {np.round(self.centre, 6).tolist()} R {self.R:g} m"
+
+
+@dataclass
+class Capsule:
+    a: np.ndarray
+    b: np.ndarray
+    R: float
+
+    def distance(self, x):
+        axis = self.b - self.a
+        L2 = axis @ axis
+        t = np.clip((x - self.a) @ axis / L2, 0.0, 1.0)
+        n, r = _unit(x - (self.a + t[:, None] * axis))
+        u = axis / np.sqrt(L2)
+        inside = (t > 0) & (t < 1)
+        P = np.eye(3) - inside[:, None, None] * np.outer(u, u)
+        H = (P - n[:, :, None] * n[:, None, :]) / np.maximum(r, 1e-300)[:, None, None]
+        return r - self.R, n, H
+
+    def describe(self):
+        return (f"capsule {np.round(self.a, 6).tolist()} to "
+                f"{np.round(self.b, 6).tolist()} R {self.R:g} m")
+
+
+@dataclass
+class Plane:
+    point: np.ndarray
+    normal: np.ndarray
+
+    def distance(self, x):
+        n = self.normal / np.linalg.norm(self.normal)
+        return (x - self.point) @ n, np.broadcast_to(n, x.shape), \
+            np.zeros((len(x), 3, 3))
+
+    def describe(self):
+        return (f"plane through {np.round(self.point, 6).tolist()} normal "
+                f"{np.round(self.normal, 6).tolist()}")
+
+
+KINDS = {"sphere": (Sphere, 4), "capsule": (Capsule, 7), "plane": (Plane, 6)}
+
+
+def parse_colliders(text):
+    """Bodies from "sphere:cx,cy,cz,R", "capsule:x0,y0,z0,x1,y1,z1,R" and
+    "plane:px,py,pz,nx,ny,nz", several separated by ";" (ValueError with
+    what is wrong and how to write it)."""
+    bodies = []
+    for spec in filter(None, (s.strip() for s in text.split(";"))):
+        kind, _, numbers = spec.partition(":")
+        if kind not in KINDS:
+            raise ValueError(f"collider {spec!r}: the kind is one of "
+                             f"{', '.join(KINDS)} (e.g. sphere:0,0,0,0.01)")
+        cls, count = KINDS[kind]
+        try:
+            v = np.array([float(s) for s in numbers.split(",")])
+        except ValueError:
+            v = np.zeros(0)
+        if len(v) != count:
+            raise ValueError(f"collider {spec!r}: {kind} takes {count} numbers")
+        if kind == "sphere":
+            body = Sphere(v[:3], v[3])
+        elif kind == "capsule":
+            body = Capsule(v[:3], v[3:6], v[6])
+        else:
+            body = Plane(v[:3], v[3:])
+        if (kind != "plane" and v[-1] <= 0) or \
+                (kind == "plane" and not np.linalg.norm(v[3:])) or \
+                (kind == "capsule" and not np.linalg.norm(v[3:6] - v[:3])):
+            raise ValueError(f"collider {spec!r}: needs a positive radius, a "
+                             "nonzero normal or two distinct ends")
+        bodies.append(body)
+    return tuple(bodies)
+
+
+class Barrier:
+    """E_c of the yarn elements ``elements`` (``yarn.YarnElements``) against
+    ``bodies``: energy, forces and tangent blocks (module docstring); gap ĥ =
+    ``gap`` × r, κ = 1e4 ρ g / ĥ² (``weight`` = ρ g, N/m)."""
+
+    def __init__(self, bodies, elements, radius, weight, gap=0.1):
+        self.bodies, self.el, self.radius = bodies, elements, radius
+        self.gap = gap * radius
+        self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
+
+    def surface_distance(self, x):
+        """δ = min over bodies of φ − r at every quadrature point, with the
+        nearest body's n and ∇²φ: (δ (ne, nq), n, H)."""
+        pts = self.el.points(x).reshape(-1, 3)
+        best = None
+        for body in self.bodies:
+            phi, n, H = body.distance(pts)
+            if best is None:
+                best = [phi, np.array(n), H]
+            else:
+                closer = phi < best[0]
+                best[0] = np.where(closer, phi, best[0])
+                best[1][closer], best[2][closer] = n[closer], H[closer]
+        shape = (self.el.ne, len(self.el.B))
+        return ((best[0] - self.radius).reshape(shape), best[1].reshape(*shape, 3),
+                best[2].reshape(*shape, 3, 3))
+
+    def _active(self, x):
+        """Elements with a point within the gap, and f', f'' (weighted by
+        w_q |X'|) there: (elements, δ, n, H, w f', w f'')."""
+        delta, n, H = self.surface_distance(x)
+        e = np.flatnonzero((delta < self.gap).any(axis=1))
+        s = np.maximum(self.gap - delta[e], 0.0)
+        W = self.el.W[e]
+        return e, delta[e], n[e], H[e], -W * self.kappa * s**2, 2 * W * self.kappa * s
+
+    def energy(self, x):
+        """E_c (local elements)."""
+        delta = self.surface_distance(x)[0]
+        s = np.maximum(self.gap - delta, 0.0)
+        return float(np.sum(self.el.W * self.kappa / 3 * s**3))
+
+    def add_gradient(self, x, out, scale=1.0):
+        """out (ncp, 3) += scale ∂E_c/∂ε."""
+        e, _, n, _, d1, _ = self._active(x)
+        g = np.einsum("eq,qa,eqi->eai", d1, self.el.B, n)
+        np.add.at(out, self.el.conn[e], scale * g)
+
+    def add_hessian(self, x, slot, values):
+        """values[slot[e]] += ∂²E_c/∂p∂p of the active elements; ``slot`` the
+        yarn elements' (ne, 12, 12) value slots."""
+        e, _, n, H, d1, d2 = self._active(x)
+        if not len(e):
+            return
+        Hq = d2[..., None, None] * n[..., :, None] * n[..., None, :] \
+            + d1[..., None, None] * H                                # (e, q, 3, 3)
+        B = self.el.B
+        blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
+        np.add.at(values, slot[e], blocks)
+
+    def min_distance(self, x):
+        """Smallest δ (local; +inf without elements)."""
+        delta = self.surface_distance(x)[0]
+        return float(delta.min()) if delta.size else np.inf
