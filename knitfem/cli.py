@@ -64,7 +64,6 @@ def _command(command, wants_help):
 
     from .options import OURS, KnitError, KnitOptions, unused_options
 
-    given = set(PETSc.Options().getAll())       # not the defaults we set later
     if command is None:
         PETSc.Sys.Print(USAGE)
         return 0
@@ -83,7 +82,8 @@ def _command(command, wants_help):
         return 2
     except (SimulationError, PETSc.Error, OSError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        complain(f"knitfem {command}: error: {type(err).__name__}: {first}")
+        name = "" if isinstance(err, SimulationError) else f"{type(err).__name__}: "
+        complain(f"knitfem {command}: error: {name}{first}")
         return 3
     except Exception as err:
         if os.environ.get("KNITFEM_TRACEBACK"):

@@ -409,17 +409,18 @@ def run(comm):
 
 def explicit_step_fits(system, dt):
     """Refuse a symplectic step above its stability limit 2/ω_max: the run
-    would blow up (SimulationError, exit 3, before the first step)."""
-    from solvers.integrators import SimulationError
+    would blow up, so it is a bad option value (KnitError, exit 2)."""
     from solvers.stability import stable_step
+
+    from .options import KnitError
 
     h = stable_step(system)
     if dt > h:
-        raise SimulationError(f"-knit_dt {dt:g} is above the stable step of the symplectic "
-                              f"integrator, 2/omega_max = {h:.3g} s for this yarn "
-                              f"and model: use -knit_dt {float(f'{0.9 * h:.2g}'):g} "
-                              f"or -knit_integrator implicit (-knit_unstable_dt "
-                              f"runs it anyway)")
+        raise KnitError(f"-knit_dt {dt:g} is above the symplectic integrator's stable "
+                        f"step 2/omega_max = {h:.3g} s for this yarn and model: use "
+                        f"-knit_dt {float(f'{0.9 * h:.2g}'):g}, or leave out "
+                        f"-knit_integrator for the default bdf2 (-knit_unstable_dt "
+                        f"runs it anyway)")
 
 
 def run_static(comm, system, scene, out, load_steps, StaticSolver):
@@ -435,6 +436,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     with PETSc.Log.Stage("Static solve"):
         solver = StaticSolver(system, load_steps)
         sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
+        out.rank0(out.remove_pictures)
         out = out.path
         _, pts0 = sim.geometry()
         if comm.rank == 0:

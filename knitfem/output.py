@@ -4,7 +4,7 @@
     DIR/yarns.xdmf, yarns/    the time series (``io.CentrelineSeries``)
     DIR/checkpoint.h5         the newest checkpoint; checkpoint.prev.h5 the one before
     DIR/summary.json          what the run did
-    DIR/*.png                 snapshots
+    DIR/*.png, *.gif          snapshots and animation (of this run only)
 
 The directory is claimed before any file in it is opened: the lock file is
 created atomically (a hard link of a complete temporary), so of two runs
@@ -228,6 +228,13 @@ class OutputDirectory:
         """Remove a file of the directory if it is there (rank 0)."""
         if os.path.exists(self.file(name)):
             os.remove(self.file(name))
+
+    def remove_pictures(self):
+        """Remove the PNG and GIF pictures an earlier run left here (rank 0),
+        so that every picture in the directory is of the run now writing."""
+        for name in os.listdir(self.path):
+            if name.endswith((".png", ".gif")) and os.path.isfile(self.file(name)):
+                os.remove(self.file(name))
 
     def write_json(self, name, rec):
         """A JSON file, atomically (rank 0)."""

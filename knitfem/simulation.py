@@ -379,8 +379,9 @@ class Simulation:
         interrupts.hold(True)
         try:
             if self.step_count == 0:
-                if self.output is not None:     # no summary of an earlier run
+                if self.output is not None:     # nothing of an earlier run
                     self.output.rank0(self.output.remove, "summary.json")
+                    self.output.rank0(self.output.remove_pictures)
                 self.write_output(*self.geometry())
             while self.t < t_end - tiny:
                 stop = t_end
