@@ -7,8 +7,8 @@ The hanging scene of ``knitfem run`` (backward Euler, dt = 1e-2, start
 horizontal) for each size, with the full model and the reduced model of
 -bench_lod (5,5). Per model: wall time, the time of a step split by PETSc
 events, the time of a Newton iteration by part (forces, tangent, Γᵀ K Γ,
-factorisation and solves, the rest), Newton iterations, unknowns, sag,
-centroid and lowest point; per size: the relative sag difference and the
+factorisation and solves, the rest), Newton iterations, unknowns, drop of the lowest point,
+centroid and lowest point; per size: the relative drop difference and the
 centroid distance of the reduced result from the full one. Writes
 results/full_vs_reduced[_TAG].json and results/figures/full_vs_reduced.png
 (time a Newton iteration, stacked by part, before and after).
@@ -54,17 +54,17 @@ def before_runs(name):
         return old["before"]
     return [dict(rows=r["rows"], cols=r["cols"], model=r["model"],
                  newton=r["newton"], steps=r["steps"], wall_s=r["wall_s"],
-                 per_step_s=r["per_step_s"], summary=dict(sag=r["summary"]["sag"]))
+                 per_step_s=r["per_step_s"], summary=dict(drop=r["summary"]["drop"]))
             for r in old["runs"] if "per_step_s" in r]
 
 
 def compare(full, reduced):
-    """Relative sag difference and centroid distance, reduced vs full."""
+    """Relative drop difference and centroid distance, reduced vs full."""
     if "failed" in full or "failed" in reduced:
         return None
-    sf, sr = full["summary"]["sag"], reduced["summary"]["sag"]
+    sf, sr = full["summary"]["drop"], reduced["summary"]["drop"]
     dc = np.subtract(reduced["summary"]["centroid"], full["summary"]["centroid"])
-    return dict(sag_relative_difference=(sr - sf) / sf,
+    return dict(drop_relative_difference=(sr - sf) / sf,
                 centroid_distance=float(np.linalg.norm(dc)))
 
 
@@ -91,7 +91,7 @@ def plot(rec):
         ax.tick_params(axis="x", labelsize=7)
         ax.set_title(f"{rows}x{cols}")
     axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
-    fig.suptitle(f"hanging jersey, backward Euler dt = {runs[0]['summary']['dt']:g}, "
+    fig.suptitle(f"hanging jersey, backward Euler dt = {runs[0]['summary']['dt_next']:g}, "
                  f"t_end = {rec['t_end']:g} s, {rec['ranks']} rank(s)", fontsize=10)
     save_figure(fig, rec["name"])
 
@@ -110,11 +110,11 @@ def report(comm, rec):
         rows.append([f"{r['rows']}x{r['cols']}", r["model"], r.get("unknowns", "-"),
                      r.get("newton", "-"), wall(r),
                      1e3 * r["wall_s"]["run"] / r["steps"] if s else "-",
-                     1e3 * s["sag"] if s else "-",
+                     1e3 * s["drop"] if s else "-",
                      str(np.round(s["lowest_point"], 5).tolist()) if s else "-",
                      str(np.round(s["centroid"], 5).tolist()) if s else "-"])
     PETSc.Sys.Print(markdown_table(
-        ["size", "model", "unknowns", "Newton its", "wall [s]", "ms/step", "sag [mm]",
+        ["size", "model", "unknowns", "Newton its", "wall [s]", "ms/step", "drop [mm]",
          "lowest point [m]", "centroid [m]"], rows))
     ok = [r for r in rec["runs"] if "per_step_s" in r]
     PETSc.Sys.Print(split_table([f"{r['rows']}x{r['cols']} {r['model']}" for r in ok],
@@ -132,8 +132,8 @@ def report(comm, rec):
         ["size", "model", "code", "Newton its", "run [s]",
          *(f"{p} [ms/it]" for p in PARTS), "total [ms/it]"], lines))
     PETSc.Sys.Print(markdown_table(
-        ["size", "relative sag difference", "centroid distance [mm]"],
-        [[f"{d['rows']}x{d['cols']}", d["sag_relative_difference"],
+        ["size", "relative drop difference", "centroid distance [mm]"],
+        [[f"{d['rows']}x{d['cols']}", d["drop_relative_difference"],
           1e3 * d["centroid_distance"]] for d in rec["differences"]]))
     if comm.rank == 0 and ok:
         plot(rec)

@@ -10,7 +10,7 @@ and the reduced model at n1 x n2 bounding-volume control points, from 4x4 up
 to one patch a stitch (n1 = cols + 3, n2 = rows + 3), in -bench_levels
 steps (or the list -bench_lods 4x4,6x6,...). At t_end: the RMS and largest
 distance of the yarn control points (ε = Γα) from the full model's, and the
-sag difference; with the unknowns and the wall time. Writes
+drop difference; with the unknowns and the wall time. Writes
 results/lod_sweep[_TAG].json and results/figures/lod_sweep[_TAG].png (error
 and time against unknowns).
 """
@@ -87,11 +87,11 @@ def plot(rec):
     save_figure(fig, rec["name"])
 
 
-def error(P, Pref, sag, sag_ref, radius):
+def error(P, Pref, drop, drop_ref, radius):
     d = np.linalg.norm(P - Pref, axis=-1)
     return dict(rms_over_radius=rms_distance(P, Pref) / radius,
                 max_over_radius=float(d.max()) / radius,
-                sag_relative_difference=(sag - sag_ref) / sag_ref)
+                drop_relative_difference=(drop - drop_ref) / drop_ref)
 
 
 def sweep(comm, rows, cols, t_end, lods):
@@ -107,7 +107,7 @@ def sweep(comm, rows, cols, t_end, lods):
         r["lod"] = [n1, n2]
         if "failed" not in r and "failed" not in full:
             r["error"] = comm.tompi4py().bcast(error(
-                P, Pref, r["summary"]["sag"], full["summary"]["sag"], full["radius"])
+                P, Pref, r["summary"]["drop"], full["summary"]["drop"], full["radius"])
                 if comm.rank == 0 else None)
         out["reduced"].append(r)
     return out
@@ -122,12 +122,12 @@ def report(comm, rec):
             rows.append([f"{s['rows']}x{s['cols']}",
                          "x".join(map(str, r["lod"])) if "lod" in r else "full",
                          r.get("unknowns", "-"), r.get("newton", "-"), wall(r),
-                         1e3 * r["summary"]["sag"] if "summary" in r else "-",
+                         1e3 * r["summary"]["drop"] if "summary" in r else "-",
                          e.get("rms_over_radius", "-"), e.get("max_over_radius", "-"),
-                         e.get("sag_relative_difference", "-")])
+                         e.get("drop_relative_difference", "-")])
     PETSc.Sys.Print(markdown_table(
-        ["size", "model", "unknowns", "Newton its", "wall [s]", "sag [mm]",
-         "RMS dist / r", "max dist / r", "rel. sag diff."], rows))
+        ["size", "model", "unknowns", "Newton its", "wall [s]", "drop [mm]",
+         "RMS dist / r", "max dist / r", "rel. drop diff."], rows))
     if comm.rank == 0:
         plot(rec)
 

@@ -95,8 +95,18 @@ def _command(command, wants_help):
         left = [k for k in unused_options() if k in given and not k.startswith(OURS)]
         if left:
             complain(f"knitfem {command}: warning: PETSc option(s) not used "
-                     f"(misspelt?): {' '.join('-' + k for k in left)}")
+                     f"(misspelt?): {' '.join('-' + k for k in left)}{prefix_hint(left)}")
     return status
+
+
+def prefix_hint(names):
+    """For solver options given without a prefix, the prefixed name: knitfem's
+    solvers read -full_, -reduced_, -mixed_ and -static_ options only."""
+    bare = [k for k in names if k.startswith(("snes_", "ksp_", "pc_", "mat_"))]
+    if not bare:
+        return ""
+    return (f"; solvers read their model's prefix: -full_{bare[0]} (or -reduced_, "
+            f"-mixed_, -static_)")
 
 
 if __name__ == "__main__":

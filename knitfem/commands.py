@@ -193,10 +193,11 @@ def build_system(comm, opts, fabric, material):
 
 
 RUN_HELP_FOOTER = """\
-PETSc options reach each solver through its prefix: -full_ and -reduced_ (the
-implicit Newton: -full_snes_monitor, -full_ksp_type, -full_pc_type ...),
--full_explicit_ (symplectic), -static_ (-knit_static: -static_snes_monitor);
--log_view, -options_file FILE. Example:
+PETSc options reach each solver through its prefix, named by the model:
+-full_, -reduced_ and -mixed_ (the implicit Newton: -full_snes_monitor,
+-full_ksp_type, -full_pc_type ...; fieldsplit fields u and l),
+-full_explicit_ (symplectic, likewise -reduced_explicit_ ...), -static_
+(-knit_static: -static_snes_monitor); -log_view, -options_file FILE. Example:
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
 VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
@@ -338,11 +339,21 @@ def run(comm):
                             + ",".join(CHANGEABLE) + ")")
     drift = opts.getReal("drift_tol", 1e-6, "largest constraint violation [m] "
                          "before the run stops", positive=True)
+    growth = opts.getReal("energy_growth", 0.5, "largest growth of the total energy, "
+                          "in units of the motion's energy, before the run stops "
+                          "(0: no limit)", nonnegative=True)
+    stall = opts.getInt("stall_steps", 100, "steps in a row shorter than 1e-5 "
+                        "t_end before the run stops as crawling (0: no limit)", 0)
     try:
         snapshots = [float(s) for s in snaps.split(",") if s]
     except ValueError:
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
+    late = [ts for ts in snapshots if ts > t_end]
+    if late and PETSc.Options().hasName("knit_snapshots"):
+        PETSc.Sys.Print(f"knitfem run: warning: -knit_snapshots "
+                        f"{','.join(f'{ts:g}' for ts in late)} after -knit_t_end "
+                        f"{t_end:g}: not drawn")
     change = tuple(c for c in change.split(",") if c)
     for c in change:
         if c not in CHANGEABLE:
@@ -383,6 +394,7 @@ def run(comm):
             problem["bodies"] = [b.describe() for b in fabric.bodies]
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
+                         energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie)
         if restart:
@@ -400,9 +412,14 @@ def run(comm):
             return stop.code
         if adapt is not None:
             adapt.report(sim, out.path)
+        if rec["linear_failures"]:
+            PETSc.Sys.Print(f"knitfem run: note: {rec['linear_failures']} linear solves "
+                            f"did not converge and their steps were retried shorter "
+                            f"(-{system.kind}_ksp_type / -{system.kind}_pc_type)")
         PETSc.Sys.Print(f"done: {rec['steps']} steps in {rec['wall_time_s']:.2f} s; "
-                        f"centroid {np.round(rec['centroid'], 6).tolist()}, sag "
-                        f"{rec['sag']:.4g} m; summary in {out.path}/summary.json")
+                        f"centroid {np.round(rec['centroid'], 6).tolist()}, lowest "
+                        f"point dropped {rec['drop']:.4g} m; summary in "
+                        f"{out.path}/summary.json")
     finally:
         out.release()
 
@@ -449,7 +466,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
             PETSc.Sys.Print(f"knitfem run: error: {err}")
             return 3
     sim.wall_time = time.perf_counter() - start
-    sim.stats["newton"] = its
+    sim.stats.update(newton=its, ksp=solver.ksp_iterations)
     rec = sim.summary()
     sim.write_summary(rec, "completed")
     P, _ = sim.geometry()
@@ -461,7 +478,8 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
         io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
                 title=f"{scene}, static equilibrium ({system.kind} model)")
     PETSc.Sys.Print(f"static equilibrium in {its} Newton iterations; tip "
-                    f"{np.round(rec['tip'], 6).tolist()}, sag {rec['sag']:.4g} m")
+                    f"{np.round(rec['tip'], 6).tolist()}, lowest point dropped "
+                    f"{rec['drop']:.4g} m")
 
 
 def fitting_metrics(fabric, P, nq=4):
@@ -499,7 +517,9 @@ def deform(comm):
     jersey = jersey_from_options(opts, 15, 30)
     mode = opts.getChoice("mode", "flexion", MODES, "imposed deformation")
     amount = opts.getReal("amount", DEFAULT_AMOUNTS[mode], "amount: degrees "
-                          "(flexion, shear, torsion) or stretch ratio (traction)")
+                          "(flexion, shear, torsion) or stretch ratio (traction); "
+                          "by default " + ", ".join(f"{m} {a:g}" for m, a in
+                                                    DEFAULT_AMOUNTS.items()))
     lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
     out = opts.getOutput(f"out/deform_{mode}")
     if opts.finish("knitfem deform"):

@@ -10,6 +10,7 @@ import contextlib
 import html
 import os
 import socket
+from io import BytesIO
 
 import h5py
 import matplotlib
@@ -72,6 +73,18 @@ def atomic_write(path, write):
         raise
 
 
+def write_hdf5(path, fill, **options):
+    """An HDF5 file made in memory by ``fill(f)`` and written to ``path`` by
+    plain file I/O: a full disk is one OSError, and HDF5 never holds a file
+    whose writes failed (it would report them again from its destructors,
+    and crash at exit)."""
+    image = BytesIO()
+    with h5py.File(image, "w", **options) as f:
+        fill(f)
+    with open(path, "wb") as out:
+        out.write(image.getbuffer())
+
+
 class CentrelineSeries:
     """XDMF time series of moving yarn centrelines, one HDF5 file a frame
     (call on rank 0).
@@ -109,13 +122,13 @@ class CentrelineSeries:
             if name.startswith(".") or (step is not None and step not in self.steps):
                 os.remove(os.path.join(self.dir, name))
 
-        def mesh(tmp):
-            with h5py.File(tmp, "w") as f:
-                f["topology"] = cells[0][1]
-                for key in ("radius", "yarn"):
-                    f[key] = data[key]
+        def mesh(f):
+            f["topology"] = cells[0][1]
+            for key in ("radius", "yarn"):
+                f[key] = data[key]
 
-        atomic_write(os.path.join(self.dir, "mesh.h5"), mesh)
+        atomic_write(os.path.join(self.dir, "mesh.h5"),
+                     lambda tmp: write_hdf5(tmp, mesh))
         self._write_xdmf()
 
     @staticmethod
@@ -144,14 +157,14 @@ class CentrelineSeries:
         extra = {k: v for k, v in data.items() if k not in ("radius", "yarn")}
         shapes = {k: np.shape(v) for k, v in extra.items()}
 
-        def frame(tmp):
-            with h5py.File(tmp, "w") as f:
-                f["geometry"] = pts
-                for name, values in extra.items():
-                    f[name] = values
-                f.attrs["t"], f.attrs["step"] = float(t), int(step)
+        def frame(f):
+            f["geometry"] = pts
+            for name, values in extra.items():
+                f[name] = values
+            f.attrs["t"], f.attrs["step"] = float(t), int(step)
 
-        atomic_write(os.path.join(self.dir, f"{step:08d}.h5"), frame)
+        atomic_write(os.path.join(self.dir, f"{step:08d}.h5"),
+                     lambda tmp: write_hdf5(tmp, frame))
         self.steps[int(step)] = (float(t), shapes)
         self._write_xdmf()
 

@@ -281,9 +281,7 @@ class Checkpoint:
         self.extra, self.frames = dict(extra or {}), list(frames)
 
     def save(self, path):
-        import h5py
-
-        with h5py.File(path, "w", libver="latest") as f:
+        def fill(f):
             for name, data in (("x", self.x), ("v", self.v)):
                 f.create_dataset(name, data=data, fletcher32=True, chunks=True)
             for i, (title, P) in enumerate(self.frames):
@@ -294,7 +292,8 @@ class Checkpoint:
                            fingerprint=json.dumps(self.fingerprint),
                            stats=json.dumps(self.stats),
                            extra=json.dumps(self.extra, default=_plain))
-            f.flush()
+
+        io.write_hdf5(path, fill, libver="latest")
 
     @classmethod
     def load(cls, path):

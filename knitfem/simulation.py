@@ -36,6 +36,17 @@ from . import bspline, interrupts, io, output
 __all__ = ["Simulation", "SimulationError"]
 
 
+def sag_below_supports(fabric, P, low):
+    """How far the lowest point ``low`` hangs below the lowest held point
+    (m), for control points P; None when nothing is held."""
+    yarns, s = fabric.fixed
+    if not len(yarns):
+        return None
+    held = min(bspline.curve_points(P[y], np.array([si]))[0, 1]
+               for y, si in zip(yarns, s))
+    return float(held - low[1])
+
+
 class Simulation:
     """Drive a mechanical system with an integrator. Collective.
 
@@ -56,7 +67,7 @@ class Simulation:
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
-                 animation=""):
+                 animation="", energy_growth=0.5, stall_steps=100):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -67,12 +78,13 @@ class Simulation:
         self.problem, self.command = dict(problem or {}), command or sys.argv
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
+        self.energy_growth, self.stall_steps = energy_growth, stall_steps
         self.verbose, self.view, self.animation = verbose, view, animation
         self.adapt = adapt          # called after every step (knitfem.adapt)
         self.x, self.v = system.start_state(), system.start_state()
         self.v.zeroEntries()
         self.t, self.step_count = 0.0, 0
-        self.stats = {"newton": 0, "ksp": 0, "rejected": 0}
+        self.stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
         self.steps_taken = []            # dt of every accepted step
         self.energy = []                 # (t, kinetic, elastic + gravity)
         self.series, self.series_from = None, None
@@ -300,10 +312,15 @@ class Simulation:
             PETSc.Sys.Print(
                 f"step {self.step_count:6d}  t {self.t:.4f} s  dt {dt:.2e} s  total "
                 f"its: newton {self.stats['newton']:5d} ksp {self.stats['ksp']:5d} "
-                f"rejected {self.stats['rejected']:3d}  E_kin "
+                f"rejected {self.stats['rejected']:3d}{self.linear_note()}  E_kin "
                 f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
                 f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
                 f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
+
+    def linear_note(self):
+        """`` (N linear solves failed)`` in the progress line, when some did."""
+        n = self.stats["linear_failures"]
+        return f" (linear solves failed: {n})" if n else ""
 
     # -- the loop ------------------------------------------------------------
     def guard(self):
@@ -409,6 +426,8 @@ class Simulation:
                     self.record_energy(m)
                     self.progress(m)
                     self.write_output(*self.geometry())
+                    self.check_energy()
+                self.check_pace(t_end)
                 self.after_step(signum)
             self.wall_time = time.perf_counter() - start
             summary = self.summary()
@@ -430,6 +449,43 @@ class Simulation:
         self.energy.append((self.t, m["kinetic_energy"],
                             m["elastic_energy"] + m["gravity_energy"]))
 
+    def check_energy(self):
+        """Raise SimulationError when the total energy E = T + V (elastic,
+        barrier, gravity and loads: all conservative) has grown above its
+        lowest so far by more than ``energy_growth`` times the energy scale
+        of the motion, the larger of the highest kinetic energy and the
+        potential energy released at earlier progress points. Damping only
+        takes energy away, so growth is the integrator's (a generalized-α
+        step feeding unresolved stiff modes, say)."""
+        if not self.energy_growth or len(self.energy) < 3:
+            return
+        t, kin, pot = np.array(self.energy).T
+        total = kin + pot
+        scale = max(kin[:-1].max(), pot[0] - pot[:-1].min())
+        grown = total[-1] - total.min()
+        if scale > 0 and grown > self.energy_growth * scale:
+            raise SimulationError(
+                f"the total energy grew by {grown:.3g} J (from {total.min():.3g} to "
+                f"{total[-1]:.3g} J) with no source, {grown / scale:.3g} times the "
+                f"motion's energy {scale:.3g} J: the integrator is unstable here "
+                f"(-knit_energy_growth {self.energy_growth:g}; try -knit_integrator "
+                f"bdf2)", curable=False)
+
+    def check_pace(self, t_end):
+        """Raise SimulationError when the last ``stall_steps`` accepted steps
+        of an error-controlled run were all shorter than 1e-5 of the
+        simulated time: the run crawls (a fixed -knit_dt is the user's)."""
+        control = getattr(self.integrator, "control", None)
+        if control is None or not control.adaptive:
+            return
+        n = self.stall_steps
+        taken = self.steps_taken[-n:]
+        if n and len(taken) == n and max(taken) < 1e-5 * t_end:
+            raise SimulationError(
+                f"the step has stayed below {max(taken):.2g} s for {n} steps, "
+                f"{(t_end - self.t) / max(taken):.2g} more to go at this pace: the "
+                f"run crawls (-knit_stall_steps {n})", curable=False)
+
     def energy_record(self):
         """Total energy E = T + E_el + E_g over the run and its drift
         E(t_end) − E(0), absolute (J) and over the largest kinetic energy."""
@@ -449,10 +505,11 @@ class Simulation:
         control = getattr(self.integrator, "control", None)
         rec = dict(scene=self.scene, model=s.kind,
                    integrator=self.integrator.name, steps=self.step_count,
-                   dt=self.integrator.dt, dt_min=float(taken.min()),
+                   dt_next=self.integrator.dt, dt_min=float(taken.min()),
                    dt_max=float(taken.max()),
                    adaptive=bool(control is not None and control.adaptive),
                    rejected_steps=self.stats["rejected"],
+                   linear_failures=self.stats["linear_failures"],
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
@@ -470,7 +527,8 @@ class Simulation:
                 if centre is not None:
                     rec["lowest_point_below_collider_centre"] = float(centre[1] - low[1])
             rec.update(lowest_point=low.tolist(),
-                       sag=float(self.initial_lowest - low[1]),
+                       drop=float(self.initial_lowest - low[1]),
+                       sag=sag_below_supports(self.system.fabric, P, low),
                        tip=bspline.curve_points(P[0], np.array([P.shape[1] - 3.0]))[0]
                        .tolist())
         return self.comm.tompi4py().bcast(rec, root=0)

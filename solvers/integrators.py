@@ -23,7 +23,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .reasons import reason_name
-from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
 from .stepping import PositionHistory, StepControl
 
@@ -35,7 +35,14 @@ EV_FACTOR = PETSc.Log.Event("knitFactor")
 
 
 class SimulationError(RuntimeError):
-    """A step failed; the message names the step, the time and the quantity."""
+    """A step failed; the message names the step, the time and the quantity.
+    ``curable``: a smaller step may succeed (Newton or a Krylov method that
+    did not converge), as opposed to a zero pivot or a PETSc error, which
+    stop the run at once."""
+
+    def __init__(self, message, curable=True):
+        super().__init__(message)
+        self.curable = curable
 
 
 def _default(prefix, name, value):
@@ -131,7 +138,7 @@ class SymplecticEuler:
                 solve_saddle(solve or (lambda: self.ksp.solve(self.rhs, self.sol)),
                              self.ksp)
             except SolverFailure as err:
-                raise SimulationError(str(err)) from None
+                raise SimulationError(str(err), curable=False) from None
         return self.ksp.getIterationNumber()
 
     def step(self, t, x, v, t_stop=None):
@@ -169,7 +176,7 @@ class SymplecticEuler:
                                       f"{worst:.3e} m, h = {h:.3g} s)")
         v.getArray()[:] = vv
         x.axpy(h, v)
-        return {"newton": 0, "ksp": its, "rejected": 0, "dt": h}
+        return {"newton": 0, "ksp": its, "rejected": 0, "linear_failures": 0, "dt": h}
 
 
 class NewtonStepper:
@@ -349,12 +356,12 @@ class NewtonStepper:
         try:
             solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
         except SolverFailure as err:
-            raise SimulationError(f"{err}, h = {h:.3g} s") from None
+            stats["linear_failures"] += 1
+            raise SimulationError(f"{err}, h = {h:.3g} s", err.curable) from None
+        finally:
+            stats["newton"] += self.snes.getIterationNumber()
+            stats["ksp"] += self.snes.getLinearSolveIterations()
         reason = self.snes.getConvergedReason()
-        stats["newton"] += self.snes.getIterationNumber()
-        stats["ksp"] += self.snes.getLinearSolveIterations()
-        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
-            raise SimulationError(f"{ksp_failure(self.snes.getKSP())}, h = {h:.3g} s")
         if reason < 0:
             raise SimulationError(f"Newton did not converge ({reason_name(self.snes)}, "
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
@@ -380,7 +387,7 @@ class NewtonStepper:
             v.copy(self.vn)
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
-        stats = {"newton": 0, "ksp": 0, "rejected": 0}
+        stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
         c = self.control
         while True:
             h, landed = c.propose(t, t_stop)
@@ -394,6 +401,7 @@ class NewtonStepper:
                 self._solve(h, stats)
             except SimulationError as err:
                 stats["rejected"] += 1
+                self.cure_or_stop(err, stats)
                 if not c.newton_failed(h):
                     raise SimulationError(f"{err}; the step fell below "
                                           f"-knit_dt_min {c.dt_min:g} s") from None
@@ -415,11 +423,24 @@ class NewtonStepper:
             v.copy(self.vn)
             self._solve(h, stats)
             self._commit(x, v, h)
-        except SimulationError:
+        except SimulationError as err:
+            self.cure_or_stop(err, stats)
             if depth >= self.max_halvings:
                 raise
             for _ in range(2):
                 self._advance(x, v, h / 2, depth + 1, stats)
+
+    linear_retries = 4
+
+    def cure_or_stop(self, err, stats):
+        """Re-raise a failure that a smaller step cannot cure: a zero pivot or
+        a PETSc error, or a linear solver that failed ``linear_retries``
+        times in one step, the step halved each time."""
+        if not err.curable:
+            raise err
+        if stats["linear_failures"] >= self.linear_retries:
+            raise SimulationError(f"{err}; {stats['linear_failures']} linear solves "
+                                  f"failed as the step was halved", False) from None
 
     # -- checkpoints -----------------------------------------------------------
     def state(self):
@@ -485,29 +506,34 @@ class BackwardEuler(NewtonStepper):
 
 
 class GeneralizedAlpha(NewtonStepper):
-    """Generalized-α (Chung & Hulbert, J. Appl. Mech. 60, 1993), order 2,
-    with forces at the α-interpolated state (as PETSc's TSALPHA2):
+    """Generalized-α for constrained mechanical systems (Arnold & Brüls,
+    Multibody Syst. Dyn. 18, 2007): the equations of motion hold at t_{n+1},
 
-        M a_{n+1−αm} = Q(ε_{n+1−αf}, ε̇_{n+1−αf}) + Cᵀλ,
+        M ε̈_{n+1} = Q(ε_{n+1}, ε̇_{n+1}) + C(ε_{n+1})ᵀλ,   g(ε_{n+1}) = 0,
         ε_{n+1} = ε_n + h ε̇_n + h² ((½ − β) a_n + β a_{n+1}),
         ε̇_{n+1} = ε̇_n + h ((1 − γ) a_n + γ a_{n+1}),
+        (1 − αm) a_{n+1} + αm a_n = (1 − αf) ε̈_{n+1} + αf ε̈_n,
 
-    x_{n+1−α} = (1 − α) x_{n+1} + α x_n, and from the spectral radius ρ∞ at
+    with the pseudo-acceleration a, and from the spectral radius ρ∞ at
     infinite frequency (1: no numerical dissipation, 0: annihilation)
 
         αm = (2ρ∞ − 1)/(ρ∞ + 1),  αf = ρ∞/(ρ∞ + 1),
         γ = ½ − αm + αf,           β = ¼ (1 − αm + αf)².
 
-    In the Newton unknown v = ε̇_{n+1}: a_{n+1} = (v − ε̇_n − h(1 − γ)a_n)/(γh),
-    κ = hβ/γ, w = 1 − αf, σ = γh/(1 − αm),
-    v̂ = ε̇_n + h(1 − γ − γαm/(1 − αm)) a_n and
+    Forces and constraint forces at the same state keep the Newton matrix
+    symmetric, and the method is second order for the index-3 system
+    (Chung & Hulbert's form, forces at an α-interpolated state and
+    constraints at t_{n+1}, fed the stiff axial modes energy with the
+    nonlinear contacts). In the Newton unknown v = ε̇_{n+1}:
+    a_{n+1} = (v − ε̇_n − h(1 − γ)a_n)/(γh), κ = hβ/γ, w = 1,
+    σ = γh(1 − αf)/(1 − αm),
+    v̂ = ε̇_n + h(1 − γ)a_n − σ (αm a_n − αf ε̈_n)/(1 − αf) and
     ε̂ = ε_n + h ε̇_n + h²(½ − β)a_n − κ(ε̇_n + h(1 − γ)a_n).
 
-    The start projects ε̇₀ onto C ε̇ = 0 and solves M a₀ = Q₀ + Cᵀλ,
-    C a₀ = −ε̇₀ᵀ∇²g ε̇₀ (the same saddle point with A = M, C at ε₀), so the
-    start is consistent with g = 0 to second order; every step then asks
-    g(ε_{n+1}) = 0. a_n approximates ε̈(t_n + (αm − αf)h);
-    the local error of ε_{n+1} is c h³ ε⃛, c = β − ⅙ + (αm − αf)/2,
+    The start projects ε̇₀ onto C ε̇ = 0 and solves M ε̈₀ = Q₀ + Cᵀλ,
+    C ε̈₀ = −ε̇₀ᵀ∇²g ε̇₀ (the same saddle point with A = M, C at ε₀), and
+    a₀ = ε̈₀, so the start is consistent with g = 0 to second order.
+    The local error of ε_{n+1} is c h³ ε⃛, c = β − ⅙ + (αm − αf)/2,
     estimated from the last three positions (``PositionHistory``; with
     h ε⃛ ≈ a_{n+1} − a_n on the first two steps). Predictor: a_{n+1} ≈ a_n.
     """
@@ -523,16 +549,18 @@ class GeneralizedAlpha(NewtonStepper):
         self.gamma = 0.5 - self.alpha_m + self.alpha_f
         self.beta = 0.25 * (1 - self.alpha_m + self.alpha_f) ** 2
         self.a, self.a1 = system.M.createVecLeft(), system.M.createVecLeft()
+        self.acc = system.M.createVecLeft()        # ε̈_n
         self.started = False
         self.c_error = self.beta - 1.0 / 6.0 + 0.5 * (self.alpha_m - self.alpha_f)
         self.history = PositionHistory(2, self.c_error)
 
     def coefficients(self, h):
-        am, g, b = self.alpha_m, self.gamma, self.beta
+        am, af, g, b = self.alpha_m, self.alpha_f, self.gamma, self.beta
         self.kappa = h * b / g
-        self.w = 1.0 - self.alpha_f
-        self.sigma = g * h / (1.0 - am)
-        self.vhat.waxpy(h * (1.0 - g - g * am / (1.0 - am)), self.a, self.vn)
+        self.w = 1.0
+        self.sigma = g * h * (1.0 - af) / (1.0 - am)
+        self.vhat.waxpy(h * (1.0 - g) - self.sigma * am / (1.0 - af), self.a, self.vn)
+        self.vhat.axpy(self.sigma * af / (1.0 - af), self.acc)
         self.xhat.waxpy(h, self.vn, self.xn)
         self.xhat.axpy(h * h * (0.5 - b) - self.kappa * h * (1.0 - g), self.a)
         self.xhat.axpy(-self.kappa, self.vn)
@@ -552,6 +580,8 @@ class GeneralizedAlpha(NewtonStepper):
         self.e.scale(self.c_error * h * h)
 
     def accepted(self, h):
+        self.acc.waxpy(-1.0, self.vhat, self.v)     # ε̈_{n+1} = (v − v̂)/σ
+        self.acc.scale(1.0 / self.sigma)
         self._acceleration(h, self.a1)
         self.a1.copy(self.a)
 
@@ -577,6 +607,7 @@ class GeneralizedAlpha(NewtonStepper):
         self.mu.scale(-2.0)
         s.forces(x, v, self.Q)
         self._start_solve(rhs, sol, self.Q, self.a)
+        self.a.copy(self.acc)
         self.lam.getArray()[:] = self.saddle.split(sol)[1]
         v.copy(self.vn)
         rhs.destroy()
@@ -595,11 +626,13 @@ class GeneralizedAlpha(NewtonStepper):
         out.getArray()[:] = self.saddle.split(sol)[0]
 
     def state(self):
-        return dict(super().state(), a=self.a.getArray(readonly=True).copy())
+        return dict(super().state(), a=self.a.getArray(readonly=True).copy(),
+                    acc=self.acc.getArray(readonly=True).copy())
 
     def set_state(self, st):
         super().set_state(st)
         self.a.getArray()[:] = st["a"]
+        self.acc.getArray()[:] = st["acc"]
         self.started = True
 
 

@@ -32,7 +32,7 @@ import numpy as np
 from petsc4py import PETSc
 
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
-           "ksp_failure", "failure_or_retry"]
+           "ksp_failure", "failure_or_retry", "pc_failure"]
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -184,8 +184,12 @@ def saddle_ksp(saddle, prefix):
     options = PETSc.Options(prefix)
     if solver == "mumps" and not options.hasName("mat_mumps_icntl_14"):
         options.setValue("mat_mumps_icntl_14", 100)
-    ksp.setErrorIfNotConverged(True)
     ksp.setFromOptions()
+    # a direct solve raises its factorisation's error at once; a Krylov
+    # method leaves its reason (DIVERGED_ITS, DIVERGED_PC_FAILED) for Newton
+    # and the step control (an error inside KSPSolve would leave PETSc's
+    # PCPreSolve nesting raised, and every later solve fails for that)
+    ksp.setErrorIfNotConverged(ksp.getType() == "preonly")
     if pc.getType() in ("lu", "cholesky") and \
             not options.hasName("pc_factor_mat_solver_type"):
         pc.setFactorSolverType(solver)         # kept under -<prefix>pc_type lu
@@ -204,11 +208,68 @@ def saddle_ksp(saddle, prefix):
 
 # -- when the solver fails -------------------------------------------------
 class SolverFailure(RuntimeError):
-    """A linear solver failed for good; the message is one line naming the
-    solver, its code and the option to change."""
+    """A linear solver failed; the message is one line naming the solver,
+    its reason and the option to change. ``curable``: a smaller step may
+    cure it (a Krylov method out of iterations or diverging on a matrix
+    that a smaller step makes closer to the mass matrix), as opposed to a
+    zero pivot, a failed factorisation or a PETSc error."""
+
+    def __init__(self, line, curable=False):
+        super().__init__(line)
+        self.curable = curable
 
 
 MUMPS_WORKSPACE_MAX = 6400     # ICNTL(14), percent: 64× the analysis estimate
+
+KSPReason = PETSc.KSP.ConvergedReason
+CURABLE = (KSPReason.DIVERGED_MAX_IT, KSPReason.DIVERGED_DTOL,
+           KSPReason.DIVERGED_BREAKDOWN, KSPReason.DIVERGED_NANORINF)
+
+# PCFailedReason (petscpc.h), which petsc4py 3.18 does not wrap
+PC_FAILED = {-1: "set-up error", 1: "structurally zero pivot",
+             2: "numerically zero pivot", 3: "out of memory in the factorisation",
+             4: "factorisation failed", 5: "a sub-preconditioner failed"}
+
+
+def _libpetsc():
+    """The PETSc C library under petsc4py (for the calls it does not wrap)."""
+    import ctypes
+
+    return ctypes.CDLL(PETSc.__file__)
+
+
+def pc_failure(pc):
+    """Why a preconditioner failed, in words: its PCFailedReason, followed
+    into fieldsplit blocks, and a zero pivot's row and value (PETSc's
+    PCGetFailedReason and MatFactorGetErrorZeroPivot through ctypes)."""
+    import ctypes
+
+    lib, code = _libpetsc(), ctypes.c_int(0)
+    lib.PCGetFailedReason(ctypes.c_void_p(pc.handle), ctypes.byref(code))
+    where = f"PC {pc.getType()}"
+    if pc.getType() == "fieldsplit":
+        # a block whose preconditioner failed first: it makes the others fail
+        subs = sorted(((sub.getConvergedReason() != KSPReason.DIVERGED_PCSETUP_FAILED,
+                        name, sub) for name, sub in zip("ul", pc.getFieldSplitSubKSP())
+                       if sub.getConvergedReason() < 0), key=lambda e: e[:2])
+        if subs:
+            other, name, sub = subs[0]
+            why = _reason(sub) if other else pc_failure(sub.getPC())
+            return f"{where}, block {name!r} ({sub.getType()}): {why}"
+    if code.value in (1, 2) and pc.getType() in ("lu", "cholesky", "ilu", "icc"):
+        pivot, row = ctypes.c_double(0.0), ctypes.c_int(0)
+        lib.MatFactorGetErrorZeroPivot(ctypes.c_void_p(pc.getFactorMatrix().handle),
+                                       ctypes.byref(pivot), ctypes.byref(row))
+        return (f"{where}: {PC_FAILED[code.value]} in row {row.value} "
+                f"(value {pivot.value:.3g})")
+    return f"{where}: {PC_FAILED.get(code.value, f'PCFailedReason {code.value}')}"
+
+
+def _reason(ksp):
+    """A KSP's converged reason by name."""
+    return next((k for k, v in vars(KSPReason).items()
+                 if v == ksp.getConvergedReason() and not k.startswith("_")),
+                str(ksp.getConvergedReason()))
 
 
 def _factor(ksp):
@@ -237,22 +298,32 @@ def refactor(ksp, icntl14):
 
 
 def ksp_failure(ksp):
-    """One line for a KSP whose last solve did not converge: the solver, its
-    reason by name and the options to change."""
+    """The SolverFailure of a KSP whose last solve did not converge: the
+    solver, its reason by name (with the iterations and the residual, or
+    what made the preconditioner fail) and the option to change."""
     prefix = ksp.getOptionsPrefix() or ""
-    name = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items()
-            if isinstance(v, int)}.get(ksp.getConvergedReason())
-    return (f"KSP {ksp.getType()} with PC {ksp.getPC().getType()} did not converge "
-            f"({name}, {ksp.getIterationNumber()} iterations): raise "
-            f"-{prefix}ksp_max_it or change -{prefix}pc_type")
+    reason = ksp.getConvergedReason()
+    solver = f"KSP {ksp.getType()} with PC {ksp.getPC().getType()}"
+    if reason == KSPReason.DIVERGED_PCSETUP_FAILED:
+        why = pc_failure(ksp.getPC())
+        advice = (f"use -{prefix}pc_fieldsplit_schur_precondition selfp (the "
+                  f"constraint block is zero)" if "block 'l'" in why
+                  else f"change -{prefix}pc_type")
+        return SolverFailure(f"{solver} failed (DIVERGED_PCSETUP_FAILED, {why}): "
+                             f"{advice}")
+    return SolverFailure(
+        f"{solver} did not converge ({_reason(ksp)}, {ksp.getIterationNumber()} "
+        f"iterations, residual {ksp.getResidualNorm():.3g}): raise "
+        f"-{prefix}ksp_max_it or change -{prefix}pc_type", reason in CURABLE)
 
 
-def failure_or_retry(ksp, err):
-    """After a PETSc error ``err`` in a solve with ``ksp`` (collective).
+def failure_or_retry(ksp, err=None):
+    """After a failed solve with ``ksp``, raised as the PETSc error ``err`` or
+    only left in its reason (collective).
 
     MUMPS out of workspace (INFOG(1) = −8 or −9): ICNTL(14) is doubled (up to
     6400 %) and None is returned, the caller then repeats the solve. Anything
-    else: a one-line description naming the solver, its code and the option
+    else: the ``SolverFailure`` naming the solver, its reason and the option
     to change.
     """
     prefix = ksp.getOptionsPrefix() or ""
@@ -268,41 +339,44 @@ def failure_or_retry(ksp, err):
                                 f"retrying with -{prefix}mat_mumps_icntl_14 {new}",
                                 comm=ksp.getComm())
                 return None
-            return (f"MUMPS factorisation out of workspace (INFOG(1) = {info}) even "
-                    f"with -{prefix}mat_mumps_icntl_14 {icntl14}: use more ranks "
-                    f"or another solver (-{prefix}pc_factor_mat_solver_type)")
+            return SolverFailure(
+                f"MUMPS factorisation out of workspace (INFOG(1) = {info}) even "
+                f"with -{prefix}mat_mumps_icntl_14 {icntl14}: use more ranks "
+                f"or another solver (-{prefix}pc_factor_mat_solver_type)")
         if info == -10:
-            return (f"MUMPS: K is numerically singular (INFOG(1) = -10): "
-                    f"redundant constraints? -{prefix}mat_mumps_icntl_24 1 "
-                    f"detects null pivots")
+            return SolverFailure(
+                f"MUMPS: K is numerically singular (INFOG(1) = -10): redundant "
+                f"constraints? -{prefix}mat_mumps_icntl_24 1 detects null pivots")
         if info == -13:
-            return (f"MUMPS could not allocate memory (INFOG(1) = -13, INFO(2) = "
-                    f"{more}): use more ranks or -{prefix}mat_mumps_icntl_35 2 "
-                    f"(BLR compression)")
+            return SolverFailure(
+                f"MUMPS could not allocate memory (INFOG(1) = -13, INFO(2) = "
+                f"{more}): use more ranks or -{prefix}mat_mumps_icntl_35 2 "
+                f"(BLR compression)")
         if info < 0:
-            return (f"MUMPS failed with INFOG(1) = {info}, INFO(2) = {more} (MUMPS "
-                    f"users' guide, error diagnostics): try "
-                    f"-{prefix}pc_factor_mat_solver_type superlu_dist")
-    if ksp.getConvergedReason() < 0:
+            return SolverFailure(
+                f"MUMPS failed with INFOG(1) = {info}, INFO(2) = {more} (MUMPS "
+                f"users' guide, error diagnostics): try "
+                f"-{prefix}pc_factor_mat_solver_type superlu_dist")
+    if ksp.getConvergedReason() < 0 or err is None:
         return ksp_failure(ksp)
     last = [s.strip() for s in str(err).splitlines() if s.strip()]
-    return (f"PETSc error in the {prefix} solve ({last[-1] if last else err}): "
-            f"change -{prefix}ksp_type / -{prefix}pc_type")
+    return SolverFailure(f"PETSc error in the {prefix} solve "
+                         f"({last[-1] if last else err}): change "
+                         f"-{prefix}ksp_type / -{prefix}pc_type")
 
 
 def solve_saddle(solve, ksp):
     """``solve()``, repeated with more MUMPS workspace while it runs out of
-    it; any other failure, raised or only left in the KSP's reason (PETSc
-    3.18 stops raising DIVERGED_* after a first error in a process), raises
-    ``SolverFailure`` (collective)."""
+    it; any other failure, raised or only left in the KSP's reason, raises
+    its ``SolverFailure`` (collective)."""
     while True:
         try:
             result = solve()
         except PETSc.Error as err:
-            line = failure_or_retry(ksp, err)
-            if line is not None:
-                raise SolverFailure(line) from None
-            continue
-        if ksp.getConvergedReason() < 0:
-            raise SolverFailure(ksp_failure(ksp))
-        return result
+            failure = failure_or_retry(ksp, err)
+        else:
+            if ksp.getConvergedReason() >= 0:
+                return result
+            failure = failure_or_retry(ksp)
+        if failure is not None:
+            raise failure

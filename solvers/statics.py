@@ -46,7 +46,7 @@ from petsc4py import PETSc
 
 from .integrators import SimulationError, _default, step_convergence
 from .reasons import reason_name
-from .saddle import (SaddlePoint, SolverFailure, ksp_failure, saddle_ksp,
+from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
 
 __all__ = ["StaticSolver"]
@@ -91,6 +91,7 @@ class StaticSolver:
         self.lumped = system.M.getRowSum()
         self.load, self.sigma, self.sigma0 = 1.0, 0.0, 0.0
         self.f0 = self.fmin = 0.0
+        self.ksp_iterations = 0
 
     def _converged(self, system):
         """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
@@ -162,14 +163,13 @@ class StaticSolver:
                 solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
             except SolverFailure as err:
                 raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
-                                      f"{err}") from None
+                                      f"{err}", curable=False) from None
+            finally:
+                its += self.snes.getIterationNumber()
+                self.ksp_iterations += self.snes.getLinearSolveIterations()
             reason = self.snes.getConvergedReason()
-            its += self.snes.getIterationNumber()
             if monitor:
                 monitor(i, self.load, self.snes)
-            if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
-                raise SimulationError(f"static Newton failed at load {self.load:.3g}: "
-                                      f"{ksp_failure(self.snes.getKSP())}")
             if reason < 0:
                 raise SimulationError(
                     f"static Newton did not converge at load {self.load:.3g} "

@@ -17,3 +17,16 @@ def collective_cleanup():
     yield
     gc.collect()
     MPI.COMM_WORLD.Barrier()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config):
+    """Under mpirun only rank 0 reports, without colour codes (every rank
+    runs every test, and the exit status still reflects each rank's
+    failures)."""
+    if MPI.COMM_WORLD.size > 1:
+        config.get_terminal_writer().hasmarkup = False
+    if MPI.COMM_WORLD.rank > 0:
+        reporter = config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            config.pluginmanager.unregister(reporter)

@@ -108,7 +108,7 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
                 "centroid", "lowest_point", "kinetic_energy", "elastic_energy",
                 "max_constraint_violation", "max_strain"):
         assert key in rec
-    assert rec["steps"] == 4 and rec["sag"] > 0     # the tilted swatch falls
+    assert rec["steps"] == 4 and rec["drop"] > 0    # the tilted swatch falls
     for name in ("hanging_t0.02s.png", "hanging_t0.04s.png", "hanging_snapshots.png",
                  "yarns.xdmf", "yarns/mesh.h5", "yarns/00000004.h5"):
         assert (tmp_path / name).stat().st_size > 0
@@ -184,6 +184,13 @@ def test_unused_petsc_option_is_a_warning():
     assert "-log_view" not in warning[0] and "-skip_petscrc" not in warning[0]
 
 
+def test_an_unprefixed_solver_option_gets_its_prefixed_name(tmp_path):
+    p = knitfem("run", "-knit_rows", "2", "-knit_cols", "2", "-knit_t_end", "0.002",
+                "-snes_monitor", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "-full_snes_monitor" in p.stderr.splitlines()[-1]
+
+
 def readme_commands():
     """The knitfem command lines of the README's code blocks."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -197,7 +204,8 @@ def readme_commands():
 def test_readme_commands_run_as_written_after_activation(tmp_path):
     """Every README command line, on the PATH that `source
     .venv/bin/activate` gives: its options are known and parse (run with
-    -help appended); the quick ones run to the end."""
+    -help appended); the quick ones, and every one that names solver
+    options, run to the end."""
     commands = readme_commands()
     assert len(commands) >= 7
     env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep
@@ -207,7 +215,8 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
     quick = ("knitfem dofs", "knitfem pattern")
     for line in commands:
         words = line.split()
-        for run_it in (False, True) if line.startswith(quick) else (False,):
+        runs = line.startswith(quick) or re.search(r" -(full|reduced|mixed|static)_", line)
+        for run_it in (False, True) if runs else (False,):
             p = subprocess.run(words + ([] if run_it else ["-help"])
                                + ["-skip_petscrc"], capture_output=True,
                                text=True, env=env, cwd=tmp_path, timeout=300)
@@ -237,3 +246,26 @@ def test_a_second_run_into_one_directory_leaves_only_its_own_pictures(tmp_path):
     assert second.returncode == 0, second.stderr
     pictures = {n for n in os.listdir(tmp_path) if n.endswith((".png", ".gif"))}
     assert pictures == {"hanging_t0.01s.png", "hanging_snapshots.png"}
+
+
+@pytest.mark.parametrize("pc,said", [
+    (["jacobi"], "did not converge (DIVERGED_"),
+    (["fieldsplit", "-full_pc_fieldsplit_type", "schur"], "zero pivot")])
+def test_a_krylov_failure_is_named_once(tmp_path, pc, said):
+    """An iterative solver that cannot solve the saddle point stops the run
+    with its own reason, in one line, exit 3, not with what PETSc says after
+    a first failure (Cannot embed PCPreSolve() more than twice)."""
+    p = knitfem("run", "-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",
+                "-full_ksp_type", "gmres", "-full_pc_type", *pc, "-o", str(tmp_path))
+    assert p.returncode == 3 and p.stderr == ""
+    last = p.stdout.splitlines()[-1]
+    assert said in last and "PCPreSolve" not in last and "Traceback" not in p.stdout
+
+
+def test_linear_solves_that_failed_are_counted_and_said(tmp_path):
+    p = knitfem("run", "-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",
+                "-full_ksp_type", "gmres", "-full_pc_type", "ilu", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stdout
+    rec = json.load(open(tmp_path / "summary.json"))
+    assert rec["linear_failures"] > 0 and rec["ksp_iterations"] > 10000
+    assert f"note: {rec['linear_failures']} linear solves did not converge" in p.stdout

@@ -58,3 +58,22 @@ def test_series_continued_keeps_frames_up_to_the_checkpoint(tmp_path):
     io.CentrelineSeries(path, P, 5e-4)                   # a fresh series
     assert [p.name for p in (tmp_path / "yarns").iterdir()] == ["mesh.h5"]
     assert "<Time" not in open(path).read()
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="runs a subprocess")
+def test_a_full_disk_is_one_oserror_and_a_clean_exit():
+    """HDF5 output to a device with no space left (/dev/full): one OSError
+    (ENOSPC), nothing reported by h5py's destructors, a normal exit."""
+    import subprocess
+    import sys
+
+    code = ("import errno, numpy as np\n"
+            "from knitfem import io\n"
+            "try:\n"
+            "    io.write_hdf5('/dev/full', lambda f: f.create_dataset('x', data=np.ones(10**5)))\n"
+            "except OSError as e:\n"
+            "    assert e.errno == errno.ENOSPC\n"
+            "    print('ENOSPC')\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 0 and p.stdout == "ENOSPC\n" and p.stderr == "", p.stderr

@@ -110,7 +110,27 @@ def test_failure_is_one_line(model, options):
     line = str(err.value)
     assert "\n" not in line
     assert "KSP gmres with PC jacobi" in line and "DIVERGED_MAX_IT" in line
-    assert "-t_fail_ksp_max_it" in line
+    assert "-t_fail_ksp_max_it" in line and err.value.curable
+    saddle.destroy()
+
+
+@pytest.mark.skipif(COMM.size > 1, reason="ILU is serial")
+def test_a_zero_pivot_is_named_and_not_curable(model, options):
+    """A Schur split with ILU on the zero multiplier block fails in its set-up:
+    the failure names the block, the zero pivot and the Schur preconditioner
+    that cures it, and says a shorter step would not; the KSP solves again
+    afterwards (no PETSc error is left inside it)."""
+    options(t_zp_ksp_type="gmres", t_zp_pc_type="fieldsplit",
+            t_zp_pc_fieldsplit_type="schur")
+    saddle = SaddlePoint(jacobian(model), model.C)
+    ksp = saddle_ksp(saddle, "t_zp_")
+    for _ in range(3):
+        with pytest.raises(SolverFailure) as err:
+            solve(saddle, ksp)
+        line = str(err.value)
+        assert "block 'l'" in line and "zero pivot" in line and "PCPreSolve" not in line
+        assert "-t_zp_pc_fieldsplit_schur_precondition selfp" in line
+        assert not err.value.curable
     saddle.destroy()
 
 
