@@ -541,7 +541,8 @@ def deform(comm):
     base = os.path.join(out, f"{mode}")
     io.write_centrelines(base + ".vtu", P, jersey.radius)
     moved.save(base + "_volume.vtu")
-    view = "side" if mode in ("flexion", "torsion") else "front"
+    # flexion bends the swatch in x–z and torsion turns it about x: 3-D
+    view = "three_quarter" if mode in ("flexion", "torsion") else "front"
     io.draw(base + ".png", P, jersey.radius, view=view,
             title=f"{mode} {amount:g}: max strain {rec['max_strain']:.3f}, "
                   f"min distance {rec['min_distance_over_2r']:.2f} x 2r")

@@ -261,14 +261,12 @@ def _draw_on(ax, P, radius, view, extent):
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
-    scale = ax.transData.transform([(2 * radius, 0)])[0, 0] \
-        - ax.transData.transform([(0, 0)])[0, 0]
-    lw = max(0.5, scale * 72 / ax.figure.dpi)
     shade = 0.55 + 0.45 * (depth - depth.min()) / (np.ptp(depth) + 1e-300)
     colours = plt.cm.tab10(yarn % 10)[:, :3] * shade[:, None]
-    for width, c in ((lw * 1.15, np.zeros_like(colours)), (lw, colours)):
-        ax.add_collection(LineCollection(seg[order][:, :, :2], linewidths=width,
-                                         colors=c[order], capstyle="round"))
+    for outline, c in ((1.15, np.zeros_like(colours)), (1.0, colours)):
+        tubes = LineCollection(seg[order][:, :, :2], colors=c[order], capstyle="round")
+        tubes.diameter = 2 * radius * outline       # in data units: _fit_widths
+        ax.add_collection(tubes)
     if view == "front":
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
@@ -278,6 +276,18 @@ def _draw_on(ax, P, radius, view, extent):
     else:
         ax.set_axis_off()
         _scale_bar(ax, lo, hi)
+
+
+def _fit_widths(fig):
+    """Give every tube its diameter on screen, in points, once the layout
+    (tight_layout, equal aspect) has fixed the data-to-pixel scale."""
+    for ax in fig.axes:
+        ax.apply_aspect()
+        (x0, _), (x1, _) = ax.transData.transform([(0, 0), (1, 0)])
+        points_per_unit = (x1 - x0) * 72 / fig.dpi
+        for tubes in ax.collections:
+            if hasattr(tubes, "diameter"):
+                tubes.set_linewidth(max(0.3, tubes.diameter * points_per_unit))
 
 
 def _figsize(box, width, most=12.0):
@@ -302,6 +312,7 @@ def draw(path, P, radius, title="", view="front", extent=None):
     _draw_on(ax, P, radius, view, extent)
     ax.set_title(title)
     fig.tight_layout()
+    _fit_widths(fig)
     _save(fig, path)
 
 
@@ -317,6 +328,7 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
         _draw_on(ax, P, radius, view, extent)
         ax.set_title(title)
     fig.tight_layout()
+    _fit_widths(fig)
     _save(fig, path)
 
 
@@ -328,17 +340,18 @@ def _world_box(frames):
 
 def animate(path, times, frames, radius, title="", view="three_quarter", fps=10):
     """A GIF (matplotlib.animation, Pillow) of the fabrics ``frames`` at
-    ``times``, in one view and scale."""
+    ``times``, in one view and scale, 800 pixels wide (loops visible)."""
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     extent = _world_box(frames)
     fig, ax = plt.subplots(figsize=_figsize(_projected_box(extent, view, radius),
-                                            5.0, most=8.0), dpi=80)
+                                            10.0, most=12.0), dpi=80)
 
     def show(k):
         ax.clear()
         _draw_on(ax, frames[k], radius, view, extent)
         ax.set_title(f"{title}, t = {times[k]:.2f} s")
+        _fit_widths(fig)
         return []
 
     anim = FuncAnimation(fig, show, frames=len(frames), blit=False)

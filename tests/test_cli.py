@@ -114,7 +114,7 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     from PIL import Image
     with Image.open(tmp_path / "hanging.gif") as gif:    # t = 0, 0.02, 0.04 s
-        assert gif.n_frames == 3
+        assert gif.n_frames == 3 and gif.width >= 800     # loops visible
 
 
 def test_usage_lists_commands_with_an_example_each():

@@ -77,3 +77,23 @@ def test_a_full_disk_is_one_oserror_and_a_clean_exit():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=60)
     assert p.returncode == 0 and p.stdout == "ENOSPC\n" and p.stderr == "", p.stderr
+
+
+@pytest.mark.parametrize("view", ["front", "three_quarter"])
+def test_tubes_are_drawn_one_yarn_diameter_wide(tmp_path, view):
+    """After the layout is final, every tube's line width in points is its
+    diameter (2r, and 1.15 × 2r for the outline) at the axes' scale."""
+    import matplotlib.pyplot as plt
+
+    P = jersey(3, 2).X
+    radius = 5e-4
+    fig, ax = plt.subplots(figsize=(8, 3), dpi=110)
+    io._draw_on(ax, P, radius, view, None)
+    fig.tight_layout()
+    io._fit_widths(fig)
+    fig.canvas.draw()
+    (x0, _), (x1, _) = ax.transData.transform([(0, 0), (1, 0)])
+    points = 2 * radius * (x1 - x0) * 72 / fig.dpi
+    widths = sorted(c.get_linewidth()[0] for c in ax.collections)
+    plt.close(fig)
+    assert widths == pytest.approx([points, 1.15 * points], rel=1e-9)
