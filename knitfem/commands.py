@@ -159,7 +159,7 @@ def model_options(opts):
     (-knit_lod, -knit_volume; -knit_full_region(s))."""
     from .kernels import KINDS
     from .mixed import region_options
-    from .reduced import volume_options
+    from .reduced import sampling_options, volume_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
@@ -167,6 +167,7 @@ def model_options(opts):
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
     volume_options(opts)
+    sampling_options(opts)
     region_options(opts)
     return kind, nq, kernels
 
@@ -175,7 +176,7 @@ def build_system(comm, opts, fabric, material):
     """The full, reduced or mixed model of -knit_model, from a fabric."""
     from .mixed import mixed_from_options
     from .model import FullModel
-    from .reduced import ReducedModel, embedding_from_options
+    from .reduced import embedding_from_options, reduced_from_options
 
     kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
@@ -187,7 +188,7 @@ def build_system(comm, opts, fabric, material):
         embedding = embedding_from_options(opts, comm, fabric, full.layout)
         if kind == "mixed":
             return mixed_from_options(opts, full, embedding)
-        return ReducedModel(full, embedding)
+        return reduced_from_options(opts, full, embedding)
     finally:
         stage.pop()
 
@@ -376,7 +377,10 @@ def run(comm):
         fabric.bodies = fabric.bodies + bodies
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
-        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model, {n} coordinates "
+        from .reduced import sampling_note
+
+        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model"
+                        f"{sampling_note(system)}, {n} coordinates "
                         f"+ {k} constraints (contacts, fixed points) = {n + k} "
                         f"unknowns, {comm.size} rank(s)")
         if static:

@@ -27,6 +27,7 @@ __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries
            "draw", "draw_panels", "animate", "VIEWS"]
 
 SAMPLES = 6
+SEGMENTS = 20000            # pieces of tube in a picture, about (``_draw_on``)
 
 
 def centrelines(P, samples=SAMPLES):
@@ -251,10 +252,18 @@ def _draw_on(ax, P, radius, view, extent):
 
     ``extent`` (lo, hi) is a world box kept in view (default: P's own)."""
     cam = VIEWS[view]
-    pts = centrelines(P, samples=8) @ cam.T
+    # at most ~SEGMENTS pieces: up to 8 straight segments a B-spline segment,
+    # and on a large knit, whose loops are a few pixels wide, polylines of
+    # several B-spline segments each
+    nseg = P.shape[0] * (P.shape[1] - 3)
+    samples = int(np.clip(SEGMENTS // max(1, nseg), 1, 8))
+    chunk = max(1, -(-nseg // SEGMENTS))
+    pts = centrelines(P, samples=samples) @ cam.T
     nyarn, m = pts.shape[:2]
-    seg = np.stack([pts[:, :-1], pts[:, 1:]], axis=2).reshape(-1, 2, 3)
-    yarn = np.repeat(np.arange(nyarn), m - 1)
+    pieces = -(-(m - 1) // chunk)
+    ends = np.minimum(np.arange(pieces)[:, None] * chunk + np.arange(chunk + 1), m - 1)
+    seg = pts[:, ends].reshape(-1, chunk + 1, 3)
+    yarn = np.repeat(np.arange(nyarn), pieces)
     depth = seg[:, :, 2].mean(axis=1)
     order = np.argsort(depth)
     lo, hi = _projected_box(P if extent is None else tuple(extent), view, radius)

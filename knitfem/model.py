@@ -113,21 +113,7 @@ class FullModel:
             x.destroy()
             self.nonlinear_constraints = cons_asm.nonlinear
             self.ncon, self.constraint_kind = cons_asm.count, cons_asm.kind
-            # the yarn elements' Hessians in their own pattern (``pattern``)
-            _, yarn_indices3, (slot3,) = self.pattern.blocks3()
-            self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
-            self.K_values = np.zeros(len(yarn_indices3))
-            # K's pattern: the yarn elements and the contacts (their curvature)
-            tangent = ElementPattern([self.conn, cons_asm.element_cols()],
-                                     lay.cp_start, lay.ncp_local)
-            indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
-            self.indptr3 = indptr3.astype(PETSc.IntType)
-            self.indices3 = indices3.astype(PETSc.IntType)
-            self.tangent_slot = np.empty(len(self.K_values), dtype=np.int64)
-            self.tangent_slot[slot3.ravel()] = slot3_yarn.ravel()
-            self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
-            cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
-            self.K = None
+            self.K, self._slot3, self._tangent = None, None, None
             self.Qg = self.M.createVecLeft()
             G = self.M.createVecRight()
             G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
@@ -215,6 +201,35 @@ class FullModel:
         with EV_ASSEMBLY:
             return self.constraints.jacobian(x)
 
+    @property
+    def slot3(self):
+        """Value slots (ne, 12, 12) of the yarn elements' entries in their own
+        3 × 3-block pattern (``pattern.blocks3``), made when first asked for
+        (a sampled reduced model never asks)."""
+        if self._slot3 is None:
+            with EV_ASSEMBLY:
+                _, indices3, (slot3,) = self.pattern.blocks3()
+                self._slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
+                self.K_values = np.zeros(len(indices3))
+        return self._slot3
+
+    def _tangent_pattern(self):
+        """K's pattern (indptr3, indices3): the yarn elements and the contacts'
+        curvature; where the yarn values go in it (``tangent_slot``); the
+        constraints' curvature operator in it. Made when K is first needed."""
+        lay, cons_asm, slot3 = self.layout, self.constraints, self.slot3
+        with EV_ASSEMBLY:
+            tangent = ElementPattern([self.conn, cons_asm.element_cols()],
+                                     lay.cp_start, lay.ncp_local)
+            indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
+            self.indptr3 = indptr3.astype(PETSc.IntType)
+            self.indices3 = indices3.astype(PETSc.IntType)
+            self.tangent_slot = np.empty(len(self.K_values), dtype=np.int64)
+            self.tangent_slot[slot3.ravel()] = slot3_yarn.ravel()
+            self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
+            cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
+        self._tangent = True
+
     def stiffness_values(self, x):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
         (``pattern.blocks3``): K = Σ_e K_e, written into ``K_values``
@@ -233,6 +248,8 @@ class FullModel:
 
         On one rank K holds ``tangent_values`` itself
         (``createAIJWithArrays``); on several, they are copied in."""
+        if self._tangent is None:
+            self._tangent_pattern()
         values = self.tangent_values
         values.fill(0.0)
         values[self.tangent_slot] = self.stiffness_values(x)

@@ -98,12 +98,12 @@ class GroupedTangent:
     the sum over its own yarns.
     """
 
-    def __init__(self, full, embedding):
+    def __init__(self, pattern, cols, vals, nvolume):
+        """``pattern``: the points' ``ElementPattern``; (cols, vals): their
+        rows of Γ̃; ``nvolume``: the volume's control points."""
         from .kernels import compiled_module
 
         self.module = compiled_module()
-        pattern = full.pattern
-        cols, vals = embedding.cols, embedding.vals
         neighbour = pattern.indices - pattern.row_start
         rows = np.repeat(np.arange(len(cols)), np.diff(pattern.indptr))
         keys, patch = np.unique(cols, axis=0, return_inverse=True)
@@ -117,7 +117,7 @@ class GroupedTangent:
                  for a, b in zip(start[:-1], start[1:])]
         width = np.array([len(r) for r in reach], dtype=np.int64)
         padded = np.zeros((len(groups), max(width, default=1)), dtype=np.int64)
-        gmap = np.full((len(groups), embedding.volume.size), -1, dtype=np.int32)
+        gmap = np.full((len(groups), nvolume), -1, dtype=np.int32)
         for g, r in enumerate(reach):
             padded[g, :len(r)] = r
             gmap[g, r] = np.arange(len(r))
@@ -140,6 +140,49 @@ def volume_options(opts):
     path = opts.getString("volume", "", "bounding volume file (meshio; default: "
                           "a box around the fabric at rest)")
     return lod, path
+
+
+def sampling_options(opts):
+    """(kind, tolerance) from -knit_sampling exact|sampled, -knit_sampling_tol."""
+    kind = opts.getChoice("sampling", "sampled", ("sampled", "exact"),
+                          "reduced model's yarn forces: a trained weighted sample "
+                          "of the yarn elements (ECSW) or every element")
+    tol = opts.getReal("sampling_tol", 1e-2, "relative force error the sampled "
+                       "set is trained to", positive=True)
+    return kind, tol
+
+
+def reduced_from_options(opts, full, embedding):
+    """The ReducedModel of -knit_sampling: sampled (the set trained or read
+    from the cache, said in one line) unless exact is asked for or bodies
+    need every yarn point."""
+    from .sampling import SampledElements, sampled_set
+
+    kind, tol = sampling_options(opts)
+    if kind == "exact" or full.fabric.bodies:
+        return ReducedModel(full, embedding)
+    elements, weights, report = sampled_set(full, embedding, tol)
+    comm = full.comm.tompi4py()
+    total = comm.allreduce(report["elements"]), comm.allreduce(report["of"])
+    errors = comm.allreduce(report["training_error"], op=__import__("mpi4py").MPI.MAX), \
+        comm.allreduce(report["held_out_error"], op=__import__("mpi4py").MPI.MAX)
+    model = ReducedModel(full, embedding,
+                         SampledElements(full, embedding, elements, weights))
+    model.sampling = dict(report, elements=total[0], of=total[1],
+                          training_error=errors[0], held_out_error=errors[1])
+    return model
+
+
+def sampling_note(system):
+    """The run header's words on a sampled model: |S|, the largest weight,
+    the force errors and where the set came from ('' for other models)."""
+    rep = getattr(system, "sampling", None)
+    if not rep:
+        return ""
+    return (f" (sampled: {rep['elements']} of {rep['of']} yarn elements, largest "
+            f"weight {rep['max_weight']:.3g}, force error {rep['training_error']:.2g} "
+            f"training, {rep['held_out_error']:.2g} held out; "
+            f"{'cached' if rep['cached'] else 'trained'} {rep['cache']})")
 
 
 def embedding_from_options(opts, comm, fabric, layout=None):
@@ -259,18 +302,22 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
     def Gamma(self):
         return self.embedding.Gamma
 
-    def __init__(self, full, embedding):
-        self.embedding = embedding
+    def __init__(self, full, embedding, sampled=None):
+        self.embedding, self.sampled = embedding, sampled
         G = embedding.Gamma
         self._embed(full, G, embedding.Gamma_scalar, "reduced_MV_")
         self._world_constraints()
         self.Qfull = G.createVecLeft()
         self.K = None
-        self.dense = (GroupedTangent(full, embedding)
-                      if embedding.volume.size <= DENSE_LIMIT
+        self.dense = (GroupedTangent(full.pattern, embedding.cols, embedding.vals,
+                                     embedding.volume.size)
+                      if embedding.volume.size <= DENSE_LIMIT and sampled is None
                       and full.kernels.kind == "compiled" else None)
+        if sampled is not None:        # every α on every rank, for S's points
+            self.gather, self.alpha_all = PETSc.Scatter.toAll(self.Qg)
         # the integrators' Newton matrices, too, are dense on one rank
-        self.dense_saddle = self.dense is not None and self.comm.size == 1
+        self.dense_saddle = (self.dense is not None or sampled is not None) \
+            and self.comm.size == 1
 
     def _world_constraints(self):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""
@@ -314,24 +361,69 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         a.getArray()[:] = (self.fabric.turn(flat) if turned else flat).ravel()[lo:hi]
         return a
 
+    def _all(self, alpha):
+        """Every component of α on this rank, (nvolume, 3) (collective)."""
+        if self.comm.size == 1:
+            return alpha.getArray(readonly=True).reshape(-1, 3)
+        self.gather.scatter(alpha, self.alpha_all)
+        return self.alpha_all.getArray(readonly=True).reshape(-1, 3)
+
+    def _summed(self, a):
+        """a summed over the ranks (in place; collective)."""
+        if self.comm.size > 1:
+            from mpi4py import MPI
+
+            self.comm.tompi4py().Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
+        return a
+
+    def yarn_move(self, dq):
+        """max |Γ δq| over the yarn points that S touches when sampled (the
+        whole of Γ δq would cost what the yarns do), else over all."""
+        if self.sampled is None:
+            return super().yarn_move(dq)
+        from mpi4py import MPI
+
+        self.dq.getArray()[:] = dq
+        local = self.sampled.move(self._all(self.dq))
+        return self.comm.tompi4py().allreduce(local, op=MPI.MAX)
+
+    def elastic_energy(self, q):
+        """E(Γq), or, sampled, Σ_{e∈S} ξ_e E_e: the energy this model's
+        forces derive from, so that its energy balance is its own."""
+        if self.sampled is None:
+            return super().elastic_energy(q)
+        return self.comm.tompi4py().allreduce(self.sampled.energy(self._all(q)))
+
     def forces(self, alpha, alphadot, Q):
         """Q^V = Γᵀ Q(Γα, Γα̇) = −Γᵀ ∂E/∂ε(Γα) + Γᵀ Q_g − c_d M^V α̇ (collective):
-        the elastic forces of the yarns through Γᵀ, the applied ones on the
-        reduced side (``model.applied_forces``)."""
+        the elastic forces of the yarns through Γᵀ (or of the sampled set,
+        ``sampling.SampledElements``), the applied ones on the reduced side
+        (``model.applied_forces``)."""
         G = self.embedding.Gamma
         with EV_FORCES:
-            G.mult(alpha, self.eps)
             applied_forces(self, alphadot, Q)
+            if self.sampled is not None:
+                f = np.zeros((self.embedding.volume.size, 3))
+                self.sampled.add_forces(self._all(alpha), f)
+                lo, hi = Q.getOwnershipRange()
+                Q.getArray()[:] += self._summed(f).ravel()[lo:hi]
+                return
+            G.mult(alpha, self.eps)
             self.Qfull.zeroEntries()
             self.full.add_elastic_forces(self.eps, self.Qfull)
             G.multTransposeAdd(self.Qfull, Q, Q)
 
     def stiffness(self, alpha, mu=None, weight=1.0):
-        """Γᵀ K(Γα) Γ: dense (``GroupedTangent``) or by PtAP, reusing the
-        symbolic product (linear constraints: no curvature, μ unused)."""
+        """Γᵀ K(Γα) Γ: sampled, dense (``GroupedTangent``) or by PtAP,
+        reusing the symbolic product (linear constraints: no curvature, μ
+        unused)."""
+        if self.sampled is not None:
+            return self._dense_stiffness(
+                lambda R: self.sampled.tangent(self._all(alpha), R))
         x = self.full_state(alpha, self.eps)
         if self.dense is not None:
-            return self._dense_stiffness(x)
+            return self._dense_stiffness(
+                lambda R: self.dense(self.full.stiffness_values(x), R))
         K = self.full.stiffness(x)
         with EV_PTAP:
             if self.K is None:
@@ -341,20 +433,17 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 K.PtAP(self.embedding.Gamma, self.K)
         return self.K
 
-    def _dense_stiffness(self, x):
-        """Γᵀ K Γ into R: every rank's yarns summed (one Allreduce). K is an
-        AIJ matrix with a dense pattern whose values, on one rank, are R's own
-        storage; on several, each rank's rows of R are copied in."""
-        from mpi4py import MPI
-
-        values = self.full.stiffness_values(x)
+    def _dense_stiffness(self, reduce):
+        """Γᵀ K Γ into R by ``reduce(R)`` over this rank's yarns, every rank's
+        summed (one Allreduce). K is an AIJ matrix with a dense pattern whose
+        values, on one rank, are R's own storage; on several, each rank's
+        rows of R are copied in."""
         with EV_PTAP:
             if self.K is None:
                 N = 3 * self.embedding.volume.size
                 self.R = np.zeros((N, N))
-            self.dense(values, self.R)
-            if self.comm.size > 1:
-                self.comm.tompi4py().Allreduce(MPI.IN_PLACE, self.R, op=MPI.SUM)
+            reduce(self.R)
+            self._summed(self.R)
             lo, hi = self.M.getOwnershipRange()
             if self.K is None:
                 self._create_dense(lo, hi)
@@ -377,6 +466,9 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
 
     def destroy(self):
+        if self.sampled is not None:
+            self.gather.destroy()
+            self.alpha_all.destroy()
         for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps):
             if A is not None:
                 A.destroy()

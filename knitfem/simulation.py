@@ -136,29 +136,38 @@ class Simulation:
         c = self.comm.tompi4py().allreduce(w @ p)
         return c / self.total_mass
 
-    def measures(self):
-        """Energies, constraint residuals, strain, centroid (collective)."""
-        s, mpi = self.system, self.comm.tompi4py()
-        eps = s.full_state(self.x, self.eps)
+    def energies(self):
+        """What every progress line shows (collective): kinetic, elastic (and
+        barrier) and gravity energy, |C q − d|, and the smallest distance to
+        a body so far; only the reduced state, but for the bodies."""
+        s = self.system
         s.M.mult(self.v, self.Mv)
         kinetic = 0.5 * self.v.dot(self.Mv)
         elastic = s.elastic_energy(self.x)
         potential = -s.Qg.dot(self.x)
         s.constraint_residual(self.x, self.r)
-        self.full.constraint_residual(eps, self.rf)
-        strain = s.strain(self.x)
-        max_strain = mpi.allreduce(np.abs(strain).max() if strain.size else 0.0,
-                                   op=__import__("mpi4py").MPI.MAX)
         bodies = {}
         if self.full.barrier is not None:        # the smallest over the frames
+            eps = s.full_state(self.x, self.eps)
             self.min_collider = min(self.min_collider,
                                     self.full.min_collider_distance(eps))
             bodies = dict(min_collider_distance=self.min_collider)
         return dict(**bodies, kinetic_energy=kinetic, elastic_energy=elastic,
                     gravity_energy=potential,
                     total_energy=kinetic + elastic + potential,
-                    max_constraint_violation=self.r.norm(PETSc.NormType.INFINITY),
-                    max_contact_residual=self.rf.norm(PETSc.NormType.INFINITY),
+                    max_constraint_violation=self.r.norm(PETSc.NormType.INFINITY))
+
+    def measures(self):
+        """The energies, and the yarn-level contact residuals, strain and
+        centroid (collective)."""
+        s, mpi = self.system, self.comm.tompi4py()
+        m = self.energies()
+        eps = s.full_state(self.x, self.eps)
+        self.full.constraint_residual(eps, self.rf)
+        strain = s.strain(self.x)
+        max_strain = mpi.allreduce(np.abs(strain).max() if strain.size else 0.0,
+                                   op=__import__("mpi4py").MPI.MAX)
+        return dict(m, max_contact_residual=self.rf.norm(PETSc.NormType.INFINITY),
                     max_strain=max_strain, centroid=self.centroid(eps).tolist())
 
     def geometry(self):
@@ -166,11 +175,15 @@ class Simulation:
         P = self.system.gather_points(self.x)
         return (P, io.centrelines(P)) if P is not None else (None, None)
 
+    def control_points(self):
+        """Rank 0: control points (nyarn, ncp, 3) (collective)."""
+        return self.system.gather_points(self.x)
+
     # -- output --------------------------------------------------------------
     def _path(self, name):
         return os.path.join(self.out, name)
 
-    def write_output(self, P, pts):
+    def write_output(self, P):
         """A frame of the time series, and the snapshots now due (every rank
         drops them from its list; rank 0 writes, every rank learns of an I/O
         failure)."""
@@ -181,9 +194,9 @@ class Simulation:
             return
         if self.comm.rank == 0:
             self.frames += [(f"t = {ts:g} s", P) for ts in due]
-        self.output.rank0(self._write_frame, P, due)
+        self.output.rank0(self._write_frame, P)
 
-    def _write_frame(self, P, due):
+    def _write_frame(self, P):
         if self.series is None:
             keep, note = self.series_from or (None, "")
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
@@ -191,20 +204,22 @@ class Simulation:
         self.series.write(self.step_count, self.t, P)
         if self.animation:
             self.movie.append((self.t, P))
-        for ts in due:
-            io.draw(self._path(f"{self.scene}_t{ts:g}s.png"), P,
-                    self.full.fabric.radius, view=self.view,
-                    title=f"{self.scene}, {self.system.kind} model, t = {ts:g} s")
 
     def write_panels(self):
-        """The snapshots of this run side by side in one PNG, in one scale
-        that fits them all, and the animation of the output frames (rank 0)."""
+        """The pictures, once the stepping is over (drawing never holds up a
+        step): each snapshot, the snapshots side by side in one PNG in one
+        scale that fits them all, and the animation of the output frames
+        (rank 0)."""
         if self.output is None:
             return
         self.output.rank0(self._write_panels)
         self.frames, self.movie = [], []
 
     def _write_panels(self):
+        for title, P in self.frames:                 # title: "t = 0.4 s"
+            io.draw(self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
+                    self.full.fabric.radius, view=self.view,
+                    title=f"{self.scene}, {self.system.kind} model, {title}")
         if self.frames:
             titles, frames = zip(*self.frames)
             io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
@@ -386,12 +401,11 @@ class Simulation:
     def run(self, t_end):
         """Integrate to t_end. Returns the summary dict; raises SimulationError
         (one line: step, time, quantity) or interrupts.Interrupted."""
-        start = self.start = time.perf_counter()
-        self.clock = (start, self.t, t_end)
+        self.start = time.perf_counter()
         self.at = (self.step_count, self.t)
         tiny = 1e-12 * max(1.0, abs(t_end))
         if not self.energy:
-            self.record_energy(self.measures())
+            self.record_energy(self.energies())
         stage = PETSc.Log.Stage("Time stepping")
         interrupts.hold(True)
         try:
@@ -399,7 +413,10 @@ class Simulation:
                 if self.output is not None:     # nothing of an earlier run
                     self.output.rank0(self.output.remove, "summary.json")
                     self.output.rank0(self.output.remove_pictures)
-                self.write_output(*self.geometry())
+                self.write_output(self.control_points())
+            # wall_time_s: the stepping, after the start's measures and frame
+            start = self.start = time.perf_counter()
+            self.clock = (start, self.t, t_end)
             while self.t < t_end - tiny:
                 stop = t_end
                 if self.snapshots and self.t < self.snapshots[0] - tiny:
@@ -422,10 +439,10 @@ class Simulation:
                 last = self.t >= t_end - tiny
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
-                    m = self.measures()
+                    m = self.energies()
                     self.record_energy(m)
                     self.progress(m)
-                    self.write_output(*self.geometry())
+                    self.write_output(self.control_points())
                     self.check_energy()
                 self.check_pace(t_end)
                 self.after_step(signum)
@@ -516,6 +533,8 @@ class Simulation:
                    ksp_iterations=self.stats["ksp"], **m)
         if rec["adaptive"]:
             rec.update(rtol=control.rtol, atol=control.atol)
+        if getattr(s, "sampling", None):
+            rec["sampling"] = s.sampling
         if self.energy:
             rec.update(self.energy_record())
         if self.comm.rank == 0:

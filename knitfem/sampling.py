@@ -1,0 +1,276 @@
+"""The sampled (hyper-reduced) reduced model: ECSW on the yarn elements.
+
+The reduced elastic energy E^V(α) = Σ_e E_e(Γ_e α) sums over every yarn
+element, so a reduced Newton iteration costs what the yarns do. Energy-
+Conserving Sampling and Weighting (ECSW; Farhat, Avery, Chapman & Cortial,
+IJNME 98, 2014) replaces it by a weighted sum over a sampled set S,
+
+    E^V(α) ≈ Σ_{e∈S} ξ_e E_e(Γ_e α),   ξ_e ≥ 0,
+    Q^V ≈ −Σ_{e∈S} ξ_e Γ_eᵀ ∇E_e,      K^V ≈ Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e,
+
+still an energy, so the tangent stays symmetric and the step stable. What
+is exact in α stays exact and unsampled: M^V, gravity, damping, the holds.
+Every element is stress-free at rest and under any rigid motion, so the rest
+state stays force-free and rigid motions stay exact whatever S and ξ are.
+
+Training fits ξ on the projected element forces of a library of volume
+states made here, in seconds, without a simulation: the four imposed
+deformations at two amounts each and random smooth displacements of the
+volume's control points at three amplitudes (yarn radii), with a held-out
+set of other random ones. With c_se = Γ_eᵀ ∇E_e(Γ_e α_s) and the exact
+b_s = Σ_e c_se, each snapshot scaled to unit norm, a greedy non-negative
+least-squares (Lawson–Hanson's active set, columns added by the largest
+gradient, ECSW's sparse NNLS) stops once
+
+    ‖Σ_e ξ_e c_·e − b‖ ≤ tol ‖b‖     (-knit_sampling_tol).
+
+Candidates are every element of a rank up to ``CANDIDATES``, else an equal
+share of each volume patch (An, Kim & James, SIGGRAPH 2008, select from
+candidates too): the stitches tile the patches periodically. Each rank fits
+its own yarns' sum, so the sum over ranks is fitted too.
+
+The set is cached in ``$XDG_CACHE_HOME/knitfem/sampling`` (default
+``~/.cache``) under the SHA-256 of everything it depends on: the rank's rest
+control points and elements, the volume's control points, EA, EI, the
+quadrature, the tolerance and this module's ``VERSION``; any change is
+another file, so no cached set can be stale.
+"""
+
+import hashlib
+import os
+import time
+
+import numpy as np
+
+from .reduced import GroupedTangent
+from .assembly import ElementPattern
+from .kernels import yarn_kernels
+from .yarn import YarnElements
+
+__all__ = ["SampledElements", "sampled_set", "VERSION"]
+
+VERSION = 1
+CANDIDATES = 4000
+
+
+class SampledElements:
+    """The weighted yarn elements of S and their points' rows of Γ̃.
+
+    Its own ``YarnElements`` over the points S touches, with the rest line
+    elements W scaled by ξ (E_e is linear in W), give ξ-weighted gradients
+    and Hessians from the same kernels as the full model.
+    """
+
+    def __init__(self, full, embedding, elements, weights):
+        el = full.elements
+        self.elements, self.weights = np.asarray(elements), np.asarray(weights)
+        pts, local = np.unique(el.conn[self.elements], return_inverse=True)
+        self.points = pts
+        self.sub = YarnElements(el.X[pts], local.reshape(-1, 4), el.rho, el.EA,
+                                el.EI, nq=len(el.weights))
+        self.sub.W = self.sub.W * self.weights[:, None]
+        self.sub.delta = el.delta
+        self.kernels = yarn_kernels(self.sub, full.kernels.kind)
+        from scipy import sparse
+
+        self.cols = np.ascontiguousarray(embedding.cols[pts])
+        self.vals = np.ascontiguousarray(embedding.vals[pts])
+        self.nvolume = n = embedding.volume.size
+        k = self.cols.shape[1]
+        self.G = sparse.csr_matrix((self.vals.ravel(), (np.repeat(np.arange(len(pts)), k),
+                                                        self.cols.ravel())),
+                                   shape=(len(pts), n))            # Γ̃_S
+        self.Gt = self.G.T.tocsr()
+        pattern = ElementPattern(self.sub.conn, 0, len(pts))
+        self.indptr3, self.indices3, (slot3,) = pattern.blocks3()
+        self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
+        self.values = np.zeros(len(self.indices3))
+        self.grouped = (GroupedTangent(pattern, self.cols, self.vals, self.nvolume)
+                        if full.kernels.kind == "compiled" else None)
+
+    def points_of(self, alpha):
+        """x_p = Σ_c Γ̃_pc α_c for the points of S, (npts, 3)."""
+        return self.G @ alpha
+
+    def energy(self, alpha):
+        """Σ_{e∈S} ξ_e E_e(Γ_e α): the energy the sampled model conserves."""
+        return self.sub.energy(self.points_of(alpha))
+
+    def add_forces(self, alpha, out):
+        """out (nvolume, 3) += −Σ_{e∈S} ξ_e Γ_eᵀ ∇E_e(Γ_e α)."""
+        g = np.zeros((len(self.points), 3))
+        self.kernels.add_gradient(self.points_of(alpha), g, -1.0)
+        out += self.Gt @ g
+
+    def tangent(self, alpha, out):
+        """out (3 nvolume, 3 nvolume) = Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e."""
+        self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values)
+        if self.grouped is not None:
+            return self.grouped(self.values, out)
+        from scipy import sparse                     # the numpy reference
+
+        G = sparse.kron(self.G, sparse.identity(3), format="csr")
+        K = sparse.csr_matrix((self.values, self.indices3, self.indptr3))
+        out[:] = (G.T @ K @ G).toarray()
+        return out
+
+    def move(self, dalpha):
+        """max |Γ̃_p δα| over the points of S: how far an update moves them."""
+        return float(np.abs(self.points_of(dalpha)).max()) if len(self.points) else 0.0
+
+
+# -- training ------------------------------------------------------------------
+def training_states(volume, radius, seed, held_out=False):
+    """Volume control point sets (k, nvolume, 3) to train on (or, with
+    ``held_out``, to test on): imposed deformations at two amounts each and
+    smooth random displacements (a random field on the control net, 1, 2
+    and 4 yarn radii RMS)."""
+    rng = np.random.default_rng(seed + (1000 if held_out else 0))
+    rest = volume.flat
+    states = []
+    if not held_out:
+        for mode, amounts in (("flexion", (20.0, 60.0)), ("torsion", (15.0, 45.0)),
+                              ("shear", (5.0, 15.0)), ("traction", (1.02, 1.06))):
+            for a in amounts:
+                try:
+                    states.append(volume.deformed(mode, a).flat)
+                except ValueError:        # a thin volume would fold
+                    pass
+    for amplitude in (1.0, 2.0, 4.0) * (1 if held_out else 2):
+        d = rng.standard_normal(rest.shape)
+        states.append(rest + amplitude * radius * d / np.sqrt(np.mean(d ** 2)))
+    return np.array(states)
+
+
+def element_forces(full, embedding, elements, alpha):
+    """c_e = Γ_eᵀ ∇E_e(Γ_e α) of ``elements`` as a dense (3 nvolume, ne) array,
+    and the exact b = Σ_e c_e over all the rank's elements."""
+    el = full.elements
+    X = np.einsum("pk,pki->pi", embedding.vals, alpha[embedding.cols])
+    grad = full.kernels.element_gradient(X)                  # (ne_all, 12)
+    n = embedding.volume.size
+    b = np.zeros((n, 3))
+    full_grad = el.assemble_vector(grad)
+    for i in range(3):
+        b[:, i] = np.bincount(embedding.cols.ravel(), weights=(
+            embedding.vals * full_grad[:, i:i + 1]).ravel(), minlength=n)
+    g = grad[elements].reshape(-1, 4, 3)                     # (ns, 4, 3)
+    pts = el.conn[elements]                                  # (ns, 4)
+    cols, vals = embedding.cols[pts], embedding.vals[pts]    # (ns, 4, k)
+    slot = (np.arange(len(elements))[:, None, None] * n + cols).ravel()
+    c = np.stack([np.bincount(slot, weights=(vals * g[:, :, None, i]).ravel(),
+                              minlength=len(elements) * n) for i in range(3)], -1)
+    return c.reshape(len(elements), -1).T, b.ravel()
+
+
+def candidates(full, embedding, rng):
+    """The rank's elements if at most CANDIDATES, else an equal share of each
+    volume patch (the patch of an element's first point)."""
+    ne = full.elements.ne
+    if ne <= CANDIDATES:
+        return np.arange(ne)
+    first = embedding.cols[full.elements.conn[:, 0]]
+    _, patch = np.unique(first, axis=0, return_inverse=True)
+    patch = patch.ravel()
+    share = -(-CANDIDATES // (patch.max() + 1))
+    chosen = [rng.permutation(np.flatnonzero(patch == p))[:share]
+              for p in range(patch.max() + 1)]
+    return np.sort(np.concatenate(chosen))
+
+
+def greedy_nnls(A, b, tol, most=None):
+    """Sparse ξ ≥ 0 with ‖A ξ − b‖ ≤ tol ‖b‖: Lawson–Hanson's active set,
+    entering columns chosen by the largest gradient Aᵀ r, a few at a time
+    (ECSW's sparse NNLS). Returns (ξ, relative residual)."""
+    from scipy.optimize import nnls
+
+    most = most or min(A.shape)
+    norm_b = np.linalg.norm(b)
+    S, xi, r = np.zeros(0, dtype=int), np.zeros(0), b.copy()
+    while np.linalg.norm(r) > tol * norm_b and len(S) < most:
+        grad = A.T @ r
+        grad[S] = -np.inf
+        step = max(1, len(S) // 10)
+        enter = np.argsort(grad)[::-1][:step]
+        enter = enter[grad[enter] > 0]
+        if not len(enter):
+            break
+        S = np.concatenate([S, enter])
+        xi, _ = nnls(A[:, S], b, maxiter=50 * len(S))
+        keep = xi > 0
+        S, xi = S[keep], xi[keep]
+        r = b - A[:, S] @ xi
+    out = np.zeros(A.shape[1])
+    out[S] = xi
+    return out, np.linalg.norm(r) / norm_b
+
+
+def train(full, embedding, tol, seed=0):
+    """(elements, weights, report) of the rank's sampled set."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    cand = candidates(full, embedding, rng)
+    radius = full.fabric.radius
+    vol = embedding.volume
+
+    def system(states):
+        blocks = [element_forces(full, embedding, cand, a) for a in states]
+        scale = [1.0 / max(np.linalg.norm(b), 1e-300) for _, b in blocks]
+        A = np.vstack([c * s for (c, _), s in zip(blocks, scale)])
+        b = np.concatenate([bb * s for (_, bb), s in zip(blocks, scale)])
+        return A, b
+
+    A, b = system(training_states(vol, radius, seed))
+    xi, err = greedy_nnls(A, b, tol)
+    At, bt = system(training_states(vol, radius, seed, held_out=True))
+    held = np.linalg.norm(At @ xi - bt) / np.linalg.norm(bt)
+    S = np.flatnonzero(xi)
+    report = dict(elements=int(len(S)), of=int(full.elements.ne),
+                  candidates=int(len(cand)), max_weight=float(xi.max(initial=0.0)),
+                  training_error=float(err), held_out_error=float(held),
+                  tol=tol, training_s=time.perf_counter() - t0)
+    return cand[S], xi[S], report
+
+
+def cache_key(full, embedding, tol):
+    """SHA-256 of everything the rank's sampled set depends on."""
+    el, h = full.elements, hashlib.sha256()
+    for a in (el.X, el.conn, embedding.volume.flat, embedding.cols, embedding.vals):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(repr((el.EA, el.EI, len(el.weights), tol, VERSION,
+                   full.kernels.kind)).encode())
+    return h.hexdigest()
+
+
+def cache_dir():
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(
+        os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "knitfem", "sampling")
+
+
+def sampled_set(full, embedding, tol):
+    """(elements, weights, report) of the rank's sampled set: from the cache
+    when it holds this problem's, else trained and cached (a cache that
+    cannot be written is only not used)."""
+    from .io import atomic_write
+
+    path = os.path.join(cache_dir(), cache_key(full, embedding, tol) + ".npz")
+    try:
+        with np.load(path) as f:
+            report = dict(zip(f["keys"].tolist(), f["values"].tolist()))
+            report.update((k, int(report[k])) for k in ("elements", "of", "candidates"))
+            report.update(cache=path, cached=True)
+            return f["elements"], f["weights"], report
+    except (OSError, KeyError, ValueError):
+        pass
+    elements, weights, report = train(full, embedding, tol)
+    keys = [k for k, v in report.items() if isinstance(v, (int, float))]
+    try:
+        os.makedirs(cache_dir(), exist_ok=True)
+        atomic_write(path, lambda tmp: np.savez(
+            tmp, elements=elements, weights=weights, keys=np.array(keys),
+            values=np.array([float(report[k]) for k in keys])))
+        report.update(cache=path, cached=False)
+    except OSError as err:
+        report.update(cache=f"not written: {err.strerror}", cached=False)
+    return elements, weights, report

@@ -1,0 +1,143 @@
+"""The sampled reduced model (ECSW): exact with every element at weight 1,
+its tangent the Hessian of its energy, force-free at rest and under rigid
+motions, trained to its tolerance, cached under a key that changes with
+the problem."""
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from helpers import jersey, models, to_scipy
+from knitfem import sampling
+from knitfem.model import Material
+from knitfem.reduced import ReducedModel
+from knitfem.sampling import SampledElements, greedy_nnls, sampled_set
+
+SELF = PETSc.COMM_SELF
+
+
+@pytest.fixture(scope="module")
+def pair():
+    full, red = models(SELF, jersey(4, 3, hold="top"))
+    yield full, red
+    red.destroy()
+    full.destroy()
+
+
+def sampled(full, red, elements, weights):
+    return ReducedModel(full, red.embedding,
+                        SampledElements(full, red.embedding, elements, weights))
+
+
+def deformed(red, seed=1, size=2e-4):
+    alpha = red.rest_state()
+    alpha.getArray()[:] += size * np.random.default_rng(seed).standard_normal(
+        alpha.getLocalSize())
+    return alpha
+
+
+def forces(model, alpha):
+    Q, v = alpha.duplicate(), alpha.duplicate()
+    v.zeroEntries()
+    model.forces(alpha, v, Q)
+    return Q.getArray().copy()
+
+
+@pytest.mark.parametrize("kernels", ["compiled", "numpy"])
+def test_every_element_at_weight_one_is_the_exact_model(kernels):
+    full, red = models(SELF, jersey(3, 3, hold="top"))
+    full.kernels = __import__("knitfem.kernels", fromlist=["yarn_kernels"]).yarn_kernels(
+        full.elements, kernels)
+    ne = full.elements.ne
+    s = sampled(full, red, np.arange(ne), np.ones(ne))
+    alpha = deformed(red)
+    f, ref = forces(s, alpha), forces(red, alpha)
+    assert np.abs(f - ref).max() <= 1e-12 * np.abs(ref).max()
+    K = to_scipy(s.stiffness(alpha)).toarray()
+    G = to_scipy(red.embedding.Gamma)
+    Kref = (G.T @ to_scipy(full.stiffness(red.full_state(alpha))) @ G).toarray()
+    assert np.abs(K - Kref).max() <= 1e-12 * np.abs(Kref).max()
+
+
+def test_sampled_tangent_is_the_hessian_of_the_sampled_energy(pair):
+    """K^V = −∂Q^V/∂α by central differences, for an arbitrary sampled set
+    and weights (the sampled forces are a gradient: K symmetric)."""
+    full, red = pair
+    rng = np.random.default_rng(2)
+    elements = rng.choice(full.elements.ne, 25, replace=False)
+    s = sampled(full, red, elements, rng.uniform(0.5, 3.0, 25))
+    alpha = deformed(red)
+    K = to_scipy(s.stiffness(alpha)).toarray()
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
+    d = rng.standard_normal(alpha.getLocalSize())
+    h = 1e-7
+    plus, minus = alpha.copy(), alpha.copy()
+    plus.getArray()[:] += h * d
+    minus.getArray()[:] -= h * d
+    fd = -(forces(s, plus) - forces(s, minus)) / (2 * h)
+    assert np.linalg.norm(fd - K @ d) <= 1e-6 * np.linalg.norm(K @ d)
+
+
+def test_rest_and_rigid_motions_are_force_free():
+    """Whatever S and ξ: every element is stress-free at rest and turned."""
+    full, red = models(SELF, jersey(4, 3), Material(gravity=0.0))
+    rng = np.random.default_rng(3)
+    s = sampled(full, red, rng.choice(full.elements.ne, 20, replace=False),
+                rng.uniform(1, 50, 20))
+    alpha = red.rest_state()
+    a = alpha.getArray().reshape(-1, 3)
+    scale = np.abs(forces(s, deformed(red))).max()
+    assert np.abs(forces(s, alpha)).max() <= 1e-9 * scale
+    c, t = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -t, 0], [t, c, 0], [0, 0, 1]]) @ np.array(
+        [[1, 0, 0], [0, c, t], [0, -t, c]])
+    a[:] = a @ R.T + [0.01, -0.02, 0.03]
+    assert np.abs(forces(s, alpha)).max() <= 1e-9 * scale
+    red.destroy()
+    full.destroy()
+
+
+def test_greedy_nnls_finds_a_sparse_exact_fit():
+    rng = np.random.default_rng(4)
+    A = np.abs(rng.standard_normal((60, 200)))
+    xi = np.zeros(200)
+    xi[[3, 50, 120]] = [1.0, 2.0, 0.5]
+    x, err = greedy_nnls(A, A @ xi, 1e-10)
+    assert err <= 1e-10 and (x >= 0).all()
+    assert np.count_nonzero(x) <= 10
+
+
+def test_training_meets_its_tolerance_and_caches(tmp_path, monkeypatch):
+    """The trained set fits the training forces to the tolerance with far
+    fewer elements, holds on unseen states, is read back from the cache, and
+    another material trains another set."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    full, red = models(SELF, jersey(8, 8, hold="top"))
+    emb = red.embedding
+    el, w, rep = sampled_set(full, emb, 1e-2)
+    assert rep["training_error"] <= 1e-2 and not rep["cached"]
+    assert rep["held_out_error"] <= 0.1 and len(el) < full.elements.ne / 2
+    assert (w > 0).all() and rep["max_weight"] == pytest.approx(w.max())
+    el2, w2, rep2 = sampled_set(full, emb, 1e-2)
+    assert rep2["cached"] and np.array_equal(el, el2) and np.array_equal(w, w2)
+    other, _ = models(SELF, jersey(8, 8, hold="top"), Material(EA=2.0))
+    assert sampling.cache_key(other, emb, 1e-2) != sampling.cache_key(full, emb, 1e-2)
+    for m in (other, red, full):
+        m.destroy()
+
+
+def test_sampled_forces_derive_from_the_sampled_energy(pair):
+    """Q^V_el = −∂E_S/∂α with E_S = Σ ξ_e E_e (the energy a run reports)."""
+    full, red = pair
+    rng = np.random.default_rng(5)
+    s = sampled(full, red, rng.choice(full.elements.ne, 30, replace=False),
+                rng.uniform(0.5, 2.0, 30))
+    alpha = deformed(red)
+    d = rng.standard_normal(alpha.getLocalSize())
+    h = 1e-7
+    plus, minus = alpha.copy(), alpha.copy()
+    plus.getArray()[:] += h * d
+    minus.getArray()[:] -= h * d
+    dE = (s.elastic_energy(plus) - s.elastic_energy(minus)) / (2 * h)
+    Qg = s.Qg.getArray()
+    assert -dE == pytest.approx((forces(s, alpha) - Qg) @ d, rel=1e-6)
