@@ -13,18 +13,23 @@ import socket
 from io import BytesIO
 
 import h5py
-import matplotlib
-import meshio
 import numpy as np
 
 from . import bspline
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.collections import LineCollection  # noqa: E402
-
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
            "draw", "draw_panels", "animate", "VIEWS"]
+
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported when a picture is
+    first drawn (a third of a second that runs without pictures save)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
 
 SAMPLES = 6
 SEGMENTS = 20000            # pieces of tube in a picture, about (``_draw_on``)
@@ -55,6 +60,8 @@ def _mesh_arrays(P, radius, point_data=None):
 def write_centrelines(path, P, radius, point_data=None):
     """One geometry file (.vtu, .xdmf, … as meshio infers from the name)."""
     pts, cells, data = _mesh_arrays(P, radius, point_data)
+    import meshio
+
     meshio.write(path, meshio.Mesh(pts, cells, point_data=data))
 
 
@@ -114,7 +121,7 @@ class CentrelineSeries:
         self.rel = stem
         pts, cells, data = _mesh_arrays(P0, radius)
         self.npts, self.ncells = len(pts), len(cells[0][1])
-        self.steps = {}
+        self.steps, self._grids = {}, {}        # the grids: XDMF of each frame
         os.makedirs(self.dir, exist_ok=True)
         if keep is not None:
             self.steps = {s: v for s, v in self._existing().items() if s <= keep}
@@ -180,13 +187,20 @@ class CentrelineSeries:
                 f'{self._item(file, dataset or name, shape)}</Attribute>')
 
     def _write_xdmf(self):
-        one, three = (self.npts,), (self.npts, 3)
+        """The index of every frame (each frame's grid made once)."""
         grids = []
         for step in sorted(self.steps):
-            t, shapes = self.steps[step]
-            frame = f"{step:08d}.h5"
-            grids.append(
-                f'<Grid Name="step{step}" GridType="Uniform"><Time Value="{t!r}"/>'
+            key = (step, self.steps[step][0])
+            if key not in self._grids:
+                self._grids[key] = self._grid(step)
+            grids.append(self._grids[key])
+        self._write_index(grids)
+
+    def _grid(self, step):
+        one, three = (self.npts,), (self.npts, 3)
+        t, shapes = self.steps[step]
+        frame = f"{step:08d}.h5"
+        return (f'<Grid Name="step{step}" GridType="Uniform"><Time Value="{t!r}"/>'
                 f'<Topology TopologyType="Polyline" NodesPerElement="2" '
                 f'NumberOfElements="{self.ncells}"><DataItem Dimensions='
                 f'"{self.ncells} 2" Format="HDF" NumberType="Int" Precision="8">'
@@ -198,6 +212,8 @@ class CentrelineSeries:
                 + self._attribute("yarn", "mesh.h5", one)
                 + "".join(self._attribute(n, frame, s) for n, s in shapes.items())
                 + '</Grid>')
+
+    def _write_index(self, grids):
         note = (f'<Information Name="note" Value="{html.escape(self.note)}"/>\n'
                 if self.note else "")
 
@@ -271,7 +287,9 @@ def _draw_on(ax, P, radius, view, extent):
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     shade = 0.55 + 0.45 * (depth - depth.min()) / (np.ptp(depth) + 1e-300)
-    colours = plt.cm.tab10(yarn % 10)[:, :3] * shade[:, None]
+    from matplotlib.collections import LineCollection
+
+    colours = _pyplot().cm.tab10(yarn % 10)[:, :3] * shade[:, None]
     for outline, c in ((1.15, np.zeros_like(colours)), (1.0, colours)):
         tubes = LineCollection(seg[order][:, :, :2], colors=c[order], capstyle="round")
         tubes.diameter = 2 * radius * outline       # in data units: _fit_widths
@@ -310,14 +328,14 @@ def _save(fig, path):
     try:
         atomic_write(path, fig.savefig)
     finally:
-        plt.close(fig)
+        _pyplot().close(fig)
 
 
 def draw(path, P, radius, title="", view="front", extent=None):
     """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS), its
     limits fitted to P (or to the world box ``extent``)."""
     box = _projected_box(P if extent is None else tuple(extent), view, radius)
-    fig, ax = plt.subplots(figsize=_figsize(box, 8.0), dpi=110)
+    fig, ax = _pyplot().subplots(figsize=_figsize(box, 8.0), dpi=110)
     _draw_on(ax, P, radius, view, extent)
     ax.set_title(title)
     fig.tight_layout()
@@ -331,7 +349,7 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
     if extent is None:
         extent = _world_box(frames)
     w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
-    fig, axes = plt.subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
+    fig, axes = _pyplot().subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
     for ax, P, title in zip(axes[0], frames, titles):
         _draw_on(ax, P, radius, view, extent)
@@ -353,7 +371,7 @@ def animate(path, times, frames, radius, title="", view="three_quarter", fps=10)
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     extent = _world_box(frames)
-    fig, ax = plt.subplots(figsize=_figsize(_projected_box(extent, view, radius),
+    fig, ax = _pyplot().subplots(figsize=_figsize(_projected_box(extent, view, radius),
                                             10.0, most=12.0), dpi=80)
 
     def show(k):
@@ -366,4 +384,4 @@ def animate(path, times, frames, radius, title="", view="three_quarter", fps=10)
     anim = FuncAnimation(fig, show, frames=len(frames), blit=False)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     anim.save(path, writer=PillowWriter(fps=fps))
-    plt.close(fig)
+    _pyplot().close(fig)

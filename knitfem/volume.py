@@ -29,7 +29,6 @@ sum to 1, so Γ̃ reproduces affine maps exactly.
 
 from pathlib import Path
 
-import meshio
 import numpy as np
 
 from . import bspline
@@ -42,8 +41,9 @@ MODES = ("flexion", "traction", "shear", "torsion")
 # numbers. Angles in degrees, traction as a stretch ratio.
 DEFAULT_AMOUNTS = {"flexion": 90.0, "traction": 1.2, "shear": 30.0, "torsion": 90.0}
 
-# meshio readers called directly: meshio.read() calls sys.exit on a bad file.
-_READERS = {".vtu": meshio.vtu.read, ".xdmf": meshio.xdmf.read, ".vtk": meshio.vtk.read}
+# meshio's readers by name, called directly (meshio.read() calls sys.exit
+# on a bad file); meshio is imported when a volume file is read or written
+_READERS = {".vtu": "vtu", ".xdmf": "xdmf", ".vtk": "vtk"}
 _LATTICE = "lattice_index"
 
 
@@ -367,6 +367,8 @@ class BoundingVolume:
         if path.suffix not in _READERS:
             raise ValueError(
                 f"{path}: use one of {', '.join(_READERS)} for a bounding volume")
+        import meshio
+
         meshio.Mesh(self.flat, [("hexahedron", self._hexahedra())],
                     point_data={_LATTICE: self._lattice()}).write(path)
 
@@ -377,8 +379,10 @@ class BoundingVolume:
         if path.suffix not in _READERS:
             raise ValueError(
                 f"{path}: use one of {', '.join(_READERS)} for a bounding volume")
+        import meshio
+
         try:
-            mesh = _READERS[path.suffix](str(path))
+            mesh = getattr(meshio, _READERS[path.suffix]).read(str(path))
         except OSError:
             raise
         except Exception as err:

@@ -225,6 +225,9 @@ class NewtonStepper:
         K = system.stiffness(x0)
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        # M in A's pattern: A = a K + b M is then one axpy of equal patterns
+        self.MA = self.A.duplicate()
+        self.MA.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
                                   dense=getattr(system, "dense_saddle", False),
                                   prefix=prefix)
@@ -327,8 +330,8 @@ class NewtonStepper:
                         1.0 / sw)
         K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         self.A.scale(sw * self.kappa)
-        self.A.axpy(1.0 + sw * s.material.damping, s.M,
-                    PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.A.axpy(1.0 + sw * s.material.damping, self.MA,
+                    PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         s.constraint_jacobian(self.xe)
         self.saddle.update(constraints=s.nonlinear_constraints)
 
@@ -591,8 +594,7 @@ class GeneralizedAlpha(NewtonStepper):
         if self.started:
             return
         s = self.system
-        self.A.zeroEntries()
-        self.A.axpy(1.0, s.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.MA.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         s.constraint_jacobian(x)
         self.saddle.update(constraints=True)
         rhs, sol = self.saddle.createVec(), self.saddle.createVec()

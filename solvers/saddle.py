@@ -122,14 +122,32 @@ class SaddlePoint:
         if self.constrained and constraints:
             self.C.transpose(self.Ct)
         if self.aij is not None:
-            self.nest.convert("aij", self.aij)
-            self.aij.convert("dense", self.K)
+            self._dense_update(constraints)
         elif self.constrained:
             values = np.concatenate([M.getValuesCSR()[2]
                                      for M in (self.A, self.Ct, self.C)])[self.order]
             for K in (self.K, self.P) if self.P is not self.K else (self.K,):
                 K.setValuesCSR(*self.csr, values)
                 K.assemble()
+
+    def _dense_update(self, constraints):
+        """A dense K written in place: A's block from A's values when A's
+        pattern is dense (the reduced model's), C and Cᵀ when they changed;
+        else through the nest (MatConvert)."""
+        nu = self.nu
+        indptr, _, values = self.A.getValuesCSR()
+        if len(values) != nu * nu:
+            self.nest.convert("aij", self.aij)
+            self.aij.convert("dense", self.K)
+            return
+        Kd = self.K.getDenseArray()
+        Kd[:nu, :nu] = values.reshape(nu, nu)
+        if constraints:
+            C = np.zeros((self.nl, nu))
+            indptr, indices, values = self.C.getValuesCSR()
+            C[np.repeat(np.arange(self.nl), np.diff(indptr)), indices] = values
+            Kd[nu:, :nu], Kd[:nu, nu:] = C, C.T
+        self.K.assemble()                    # a new state: LU refactorises
 
     def createVec(self):
         return self.K.createVecRight()
