@@ -5,7 +5,7 @@
 
 The hanging scene of ``knitfem run`` (backward Euler, dt = 1e-2, start
 horizontal) for each size, with the full model and the reduced model of
--bench_lod (5,5). Per model: wall time, the time of a step split by PETSc
+-bench_lod (5,5), sampled (ECSW, the default) and exact. Per model: wall time, the time of a step split by PETSc
 events, the time of a Newton iteration by part (forces, tangent, Γᵀ K Γ,
 factorisation and solves, the rest), Newton iterations, unknowns, drop of the lowest point,
 centroid and lowest point; per size: the relative drop difference and the
@@ -28,6 +28,7 @@ from .common import (KnitOptions, PETSc, case, markdown_table, read_json, record
                      wall, write_json)
 
 STUDY = "full_vs_reduced"
+MODELS = ("full", "reduced", "reduced exact")     # reduced: sampled (ECSW)
 PARTS = {"forces": ("forces", "residual other"), "tangent": ("tangent",),
          "Γᵀ K Γ": ("PtAP",), "factor/solve": ("PC set-up (factorisation)",
                                                "triangular solves"),
@@ -132,9 +133,10 @@ def report(comm, rec):
         ["size", "model", "code", "Newton its", "run [s]",
          *(f"{p} [ms/it]" for p in PARTS), "total [ms/it]"], lines))
     PETSc.Sys.Print(markdown_table(
-        ["size", "relative drop difference", "centroid distance [mm]"],
-        [[f"{d['rows']}x{d['cols']}", d["drop_relative_difference"],
-          1e3 * d["centroid_distance"]] for d in rec["differences"]]))
+        ["size", "model", "relative drop difference", "centroid distance [mm]"],
+        [[f"{d['rows']}x{d['cols']}", d.get("model", "reduced"),
+          d["drop_relative_difference"], 1e3 * d["centroid_distance"]]
+         for d in rec["differences"]]))
     if comm.rank == 0 and ok:
         plot(rec)
 
@@ -158,20 +160,23 @@ def main():
     runs, diffs = [], []
     for rows, cols in sizes:
         pair = {}
-        for model in ("full", "reduced"):
+        for model in MODELS:
             PETSc.Sys.Print(f"{rows}x{cols} {model} ...")
-            options = dict(knit_rows=rows, knit_cols=cols, knit_model=model)
-            if model == "reduced":
-                options["knit_lod"] = f"{lod[0]},{lod[1]}"
+            kind, _, sampling = model.partition(" ")
+            options = dict(knit_rows=rows, knit_cols=cols, knit_model=kind)
+            if kind == "reduced":
+                options.update(knit_lod=f"{lod[0]},{lod[1]}",
+                               knit_sampling=sampling or "sampled")
             r, _ = case(comm, options, t_end)
             r.update(rows=rows, cols=cols, model=model)
             if "failed" not in r:
                 r["per_step_s"] = step_split(r)
             pair[model] = r
             runs.append(r)
-        d = compare(pair["full"], pair["reduced"])
-        if d:
-            diffs.append(dict(rows=rows, cols=cols, **d))
+        for model in MODELS[1:]:
+            d = compare(pair["full"], pair[model])
+            if d:
+                diffs.append(dict(rows=rows, cols=cols, model=model, **d))
     rec = record(comm, STUDY, name=name, t_end=t_end, lod=list(lod), runs=runs,
                  differences=diffs, before=before_runs(name))
     write_json(comm, name, rec)

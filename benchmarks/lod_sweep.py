@@ -10,7 +10,9 @@ and the reduced model at n1 x n2 bounding-volume control points, from 4x4 up
 to one patch a stitch (n1 = cols + 3, n2 = rows + 3), in -bench_levels
 steps (or the list -bench_lods 4x4,6x6,...). At t_end: the RMS and largest
 distance of the yarn control points (ε = Γα) from the full model's, and the
-drop difference; with the unknowns and the wall time. Writes
+drop difference; with the unknowns and the wall time. The reduced models
+are sampled (ECSW) unless -knit_sampling exact (or quadrature) says
+otherwise; -bench_tag keeps the runs apart. Writes
 results/lod_sweep[_TAG].json and results/figures/lod_sweep[_TAG].png (error
 and time against unknowns).
 """

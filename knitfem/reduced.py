@@ -144,9 +144,10 @@ def volume_options(opts):
 
 def sampling_options(opts):
     """(kind, tolerance) from -knit_sampling exact|sampled, -knit_sampling_tol."""
-    kind = opts.getChoice("sampling", "sampled", ("sampled", "exact"),
+    kind = opts.getChoice("sampling", "sampled", ("sampled", "quadrature", "exact"),
                           "reduced model's yarn forces: a trained weighted sample "
-                          "of the yarn elements (ECSW) or every element")
+                          "of the yarn elements (ECSW), two stitches a volume patch "
+                          "weighted by what they stand for, or every element")
     tol = opts.getReal("sampling_tol", 1e-2, "relative force error the sampled "
                        "set is trained to", positive=True)
     return kind, tol
@@ -156,19 +157,24 @@ def reduced_from_options(opts, full, embedding):
     """The ReducedModel of -knit_sampling: sampled (the set trained or read
     from the cache, said in one line) unless exact is asked for or bodies
     need every yarn point."""
-    from .sampling import SampledElements, sampled_set
+    from .sampling import SampledElements, quadrature_set, sampled_set
 
     kind, tol = sampling_options(opts)
     if kind == "exact" or full.fabric.bodies:
         return ReducedModel(full, embedding)
-    elements, weights, report = sampled_set(full, embedding, tol)
+    if kind == "quadrature":
+        elements, weights, report = quadrature_set(full, embedding)
+        report.update(source="no training", cached=False)
+    else:
+        elements, weights, report = sampled_set(full, embedding, tol)
+        report["source"] = f"{'cached' if report['cached'] else 'trained'} {report['cache']}"
     comm = full.comm.tompi4py()
     total = comm.allreduce(report["elements"]), comm.allreduce(report["of"])
     errors = comm.allreduce(report["training_error"], op=__import__("mpi4py").MPI.MAX), \
         comm.allreduce(report["held_out_error"], op=__import__("mpi4py").MPI.MAX)
     model = ReducedModel(full, embedding,
                          SampledElements(full, embedding, elements, weights))
-    model.sampling = dict(report, elements=total[0], of=total[1],
+    model.sampling = dict(report, kind=kind, elements=total[0], of=total[1],
                           training_error=errors[0], held_out_error=errors[1])
     return model
 
@@ -179,10 +185,9 @@ def sampling_note(system):
     rep = getattr(system, "sampling", None)
     if not rep:
         return ""
-    return (f" (sampled: {rep['elements']} of {rep['of']} yarn elements, largest "
+    return (f" ({rep['kind']}: {rep['elements']} of {rep['of']} yarn elements, largest "
             f"weight {rep['max_weight']:.3g}, force error {rep['training_error']:.2g} "
-            f"training, {rep['held_out_error']:.2g} held out; "
-            f"{'cached' if rep['cached'] else 'trained'} {rep['cache']})")
+            f"training, {rep['held_out_error']:.2g} held out; {rep['source']})")
 
 
 def embedding_from_options(opts, comm, fabric, layout=None):
