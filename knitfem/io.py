@@ -7,6 +7,7 @@ frame. Every file is written under a temporary name and renamed into place.
 """
 
 import contextlib
+import functools
 import html
 import os
 import socket
@@ -35,14 +36,25 @@ SAMPLES = 6
 SEGMENTS = 20000            # pieces of tube in a picture, about (``_draw_on``)
 
 
+@functools.lru_cache(maxsize=8)
+def _sampler(ncp, samples):
+    """The sparse (m, ncp) matrix of a yarn's centreline points x(s_k) =
+    Σ_a b_a(u_k) P_{i_k + a} at s = 0, 1/samples, …, ncp − 3."""
+    from scipy import sparse
+
+    nseg = ncp - 3
+    k, u = bspline.locate(np.linspace(0, nseg, nseg * samples + 1), nseg)
+    m = len(k)
+    return sparse.csr_matrix((bspline.basis(u).ravel(), (np.repeat(np.arange(m), 4),
+                              (k[:, None] + np.arange(4)).ravel())), shape=(m, ncp))
+
+
 def centrelines(P, samples=SAMPLES):
     """Sampled centrelines of yarns P (nyarn, n, 3): points (nyarn, m, 3)."""
     P = np.asarray(P)
-    nseg = P.shape[1] - 3
-    s = np.linspace(0, nseg, nseg * samples + 1)
-    k, u = bspline.locate(s, nseg)
-    B = bspline.basis(u)
-    return np.einsum("ma,fmai->fmi", B, P[:, k[:, None] + np.arange(4)])
+    nyarn, ncp = P.shape[:2]
+    pts = _sampler(ncp, samples) @ P.transpose(1, 0, 2).reshape(ncp, -1)
+    return pts.reshape(-1, nyarn, 3).transpose(1, 0, 2)
 
 
 def _mesh_arrays(P, radius, point_data=None):
