@@ -48,7 +48,7 @@ FINGERPRINT_OPTIONS = {
     "span": "-knit_span", "segments": "-knit_segments", "lod": "-knit_lod",
     "rho": "-knit_rho", "EA": "-knit_EA", "EI": "-knit_EI",
     "gravity": "-knit_gravity", "damping": "-knit_damping",
-    "quadrature": "-knit_quadrature",
+    "quadrature": "-knit_quadrature", "sampling": "-knit_sampling",
     "integrator": "-knit_integrator", "dt": "-knit_dt",
     "unknowns": "the model size", "geometry": "the rest geometry "
     "(-knit_volume or the pattern)", "version": "the knitfem version"}
@@ -345,7 +345,7 @@ class Checkpoint:
 
 # what a restart may change on purpose (the state stays meaningful)
 CHANGEABLE = ("dt", "integrator", "rho", "EA", "EI", "gravity", "damping",
-              "quadrature", "version")
+              "quadrature", "sampling", "version")
 
 
 def restart_command(argv, checkpoint, ranks=1):

@@ -123,7 +123,11 @@ class Simulation:
         c = getattr(self.integrator, "control", None)
         dt = f"adaptive, rtol {c.rtol:g}, atol {c.atol:g}" \
             if c is not None and c.adaptive else self.integrator.dt
-        return dict(self.problem, model=self.system.kind,
+        sampling = {}
+        if self.system.kind == "reduced":          # the sampled set or every element
+            rep = getattr(self.system, "sampling", None) or {}
+            sampling["sampling"] = [rep.get("kind", "exact"), rep.get("tol")]
+        return dict(self.problem, **sampling, model=self.system.kind,
                     integrator=self.integrator.name, dt=dt,
                     unknowns=self.x.getSize(), version=output.version(),
                     geometry=self.comm.tompi4py().bcast(digest, root=0)[:16])

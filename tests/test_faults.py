@@ -393,3 +393,22 @@ def test_mumps_workspace_error_names_the_option():
     assert line.startswith("PETSc error 76 in the -full_ solver (Error reported by "
                            "MUMPS in numerical factorization phase: INFOG(1)=-9")
     assert "raise -full_mat_mumps_icntl_14" in line and "\n" not in line
+
+
+def test_a_sampled_checkpoint_is_not_continued_exact_unless_asked(tmp_path):
+    """The reduced model's sampling is part of a checkpoint's fingerprint: a
+    restart with -knit_sampling exact is refused by name, and accepted with
+    -knit_restart_change sampling."""
+    red = ("-knit_model", "reduced", "-knit_rows", "4", "-knit_cols", "4")
+    first = knitfem(*red, "-knit_t_end", "0.05", "-knit_checkpoint_every", "3",
+                    "-o", str(tmp_path / "a"))
+    assert first.returncode == 0, first.stdout + first.stderr
+    ckpt = str(tmp_path / "a" / "checkpoint.h5")
+    again = knitfem(*red, "-knit_sampling", "exact", "-knit_restart", ckpt,
+                    "-knit_t_end", "0.1", "-o", str(tmp_path / "b"))
+    line = one_line(again, 2)
+    assert "-knit_sampling" in line and "-knit_restart_change sampling" in line
+    ok = knitfem(*red, "-knit_sampling", "exact", "-knit_restart", ckpt,
+                 "-knit_restart_change", "sampling", "-knit_t_end", "0.1",
+                 "-o", str(tmp_path / "c"))
+    assert ok.returncode == 0, ok.stdout + ok.stderr
