@@ -42,9 +42,11 @@ import time
 
 import numpy as np
 
-from .reduced import GroupedTangent
+from scipy import sparse
+
 from .assembly import ElementPattern
 from .kernels import yarn_kernels
+from .reduced import GroupedTangent
 from .yarn import YarnElements
 
 __all__ = ["SampledElements", "sampled_set", "quadrature_set", "VERSION"]
@@ -71,21 +73,18 @@ class SampledElements:
         self.sub.W = self.sub.W * self.weights[:, None]
         self.sub.delta = el.delta
         self.kernels = yarn_kernels(self.sub, full.kernels.kind)
-        from scipy import sparse
-
-        self.cols = np.ascontiguousarray(embedding.cols[pts])
-        self.vals = np.ascontiguousarray(embedding.vals[pts])
+        cols = np.ascontiguousarray(embedding.cols[pts])
+        vals = np.ascontiguousarray(embedding.vals[pts])
         self.nvolume = n = embedding.volume.size
-        k = self.cols.shape[1]
-        self.G = sparse.csr_matrix((self.vals.ravel(), (np.repeat(np.arange(len(pts)), k),
-                                                        self.cols.ravel())),
+        rows = np.repeat(np.arange(len(pts)), cols.shape[1])
+        self.G = sparse.csr_matrix((vals.ravel(), (rows, cols.ravel())),
                                    shape=(len(pts), n))            # Γ̃_S
         self.Gt = self.G.T.tocsr()
         pattern = ElementPattern(self.sub.conn, 0, len(pts))
         self.indptr3, self.indices3, (slot3,) = pattern.blocks3()
         self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
         self.values = np.zeros(len(self.indices3))
-        self.grouped = (GroupedTangent(pattern, self.cols, self.vals, self.nvolume)
+        self.grouped = (GroupedTangent(pattern, cols, vals, n)
                         if full.kernels.kind == "compiled" else None)
 
     def points_of(self, alpha):
@@ -107,8 +106,6 @@ class SampledElements:
         self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values)
         if self.grouped is not None:
             return self.grouped(self.values, out)
-        from scipy import sparse                     # the numpy reference
-
         G = sparse.kron(self.G, sparse.identity(3), format="csr")
         K = sparse.csr_matrix((self.values, self.indices3, self.indptr3))
         out[:] = (G.T @ K @ G).toarray()
