@@ -46,6 +46,7 @@ def _unit(d):
 class Sphere:
     centre: np.ndarray
     R: float
+    bounded = True                  # pictures keep it in view (a plane: not)
 
     def distance(self, x):
         """(φ (n,), n (n, 3), ∇²φ (n, 3, 3)) at points x (n, 3)."""
@@ -56,12 +57,18 @@ class Sphere:
     def describe(self):
         return f"sphere centre {np.round(self.centre, 6).tolist()} R {self.R:g} m"
 
+    def surface(self, size=None):
+        """Triangles of the surface: (points (n, 3), triangles (m, 3))."""
+        return _revolved(self.centre, np.array([0.0, 0.0, 1.0]),
+                         np.linspace(np.pi, 0.0, 17), self.R, 0.0)
+
 
 @dataclass
 class Capsule:
     a: np.ndarray
     b: np.ndarray
     R: float
+    bounded = True
 
     def distance(self, x):
         axis = self.b - self.a
@@ -78,11 +85,20 @@ class Capsule:
         return (f"capsule {np.round(self.a, 6).tolist()} to "
                 f"{np.round(self.b, 6).tolist()} R {self.R:g} m")
 
+    def surface(self, size=None):
+        """Triangles of the surface: (points (n, 3), triangles (m, 3))."""
+        axis = self.b - self.a
+        polar = np.concatenate([np.linspace(np.pi, np.pi / 2, 9),
+                                np.linspace(np.pi / 2, 0.0, 9)])
+        return _revolved(self.a, axis / np.linalg.norm(axis), polar, self.R,
+                         np.linalg.norm(axis), split=9)
+
 
 @dataclass
 class Plane:
     point: np.ndarray
     normal: np.ndarray
+    bounded = False
 
     def distance(self, x):
         n = self.normal / np.linalg.norm(self.normal)
@@ -92,6 +108,44 @@ class Plane:
     def describe(self):
         return (f"plane through {np.round(self.point, 6).tolist()} normal "
                 f"{np.round(self.normal, 6).tolist()}")
+
+    def surface(self, size=1.0):
+        """A square of side 2 ``size`` about ``point``: (points, triangles)."""
+        n = self.normal / np.linalg.norm(self.normal)
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        u = np.linspace(-size, size, 9)
+        a, b = np.meshgrid(u, u, indexing="ij")
+        pts = self.point + a.reshape(-1, 1) * t1 + b.reshape(-1, 1) * t2
+        return pts, _grid_triangles(9, 9)
+
+
+def _grid_triangles(n1, n2, wrap=False):
+    """Two triangles a cell of an n1 × n2 grid of points (row-major), the
+    second index closing on itself with ``wrap``."""
+    i, j = np.meshgrid(np.arange(n1 - 1), np.arange(n2 if wrap else n2 - 1),
+                       indexing="ij")
+    a = i * n2 + j
+    b = i * n2 + (j + 1) % n2
+    c, d = a + n2, b + n2
+    return np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3),
+                           np.stack([a, d, c], -1).reshape(-1, 3)])
+
+
+def _revolved(base, u, polar, R, length, split=None, around=32):
+    """A surface of revolution about the axis base + s u: a ring of radius
+    R sin θ at s = R cos θ for each polar angle θ of ``polar`` (a sphere),
+    the rings from index ``split`` on moved by ``length`` along u (a
+    capsule). Returns (points, triangles)."""
+    t1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(u, t1)
+    s = R * np.cos(polar) + (np.arange(len(polar)) >= (split or len(polar))) * length
+    phi = np.linspace(0.0, 2 * np.pi, around, endpoint=False)
+    ring = np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2
+    pts = base + s[:, None, None] * u + (R * np.sin(polar))[:, None, None] * ring
+    return pts.reshape(-1, 3), _grid_triangles(len(polar), around, wrap=True)
 
 
 KINDS = {"sphere": (Sphere, 4), "capsule": (Capsule, 7), "plane": (Plane, 6)}

@@ -77,6 +77,23 @@ def write_centrelines(path, P, radius, point_data=None):
     meshio.write(path, meshio.Mesh(pts, cells, point_data=data))
 
 
+def write_bodies(path, bodies, size):
+    """The surfaces of ``bodies`` (``colliders``) as one triangle mesh with
+    point data ``body`` (its index), for ParaView beside the yarns; a plane
+    is drawn as a square of half-side ``size``."""
+    import meshio
+
+    pts, tris, which = [], [], []
+    for k, body in enumerate(bodies):
+        p, t = body.surface(size)
+        tris.append(t + sum(len(q) for q in pts))
+        pts.append(p)
+        which.append(np.full(len(p), k, dtype=float))
+    mesh = meshio.Mesh(np.concatenate(pts), [("triangle", np.concatenate(tris))],
+                       point_data={"body": np.concatenate(which)})
+    atomic_write(path, lambda tmp: meshio.write(tmp, mesh, file_format="vtu"))
+
+
 def atomic_write(path, write):
     """Write ``path`` through ``write(tmp)`` on a unique temporary name in the
     same directory, then rename: readers see the old file or the new one,
@@ -275,11 +292,31 @@ def _scale_bar(ax, lo, hi):
             fontsize=8)
 
 
-def _draw_on(ax, P, radius, view, extent):
-    """Yarns P as shaded tubes on ``ax``, back to front (painter's algorithm).
+def _draw_bodies(ax, bodies, cam, size):
+    """The surfaces of ``bodies`` as grey triangles, back to front and shaded
+    by how squarely they face the viewer, behind the yarns (zorder 0)."""
+    from matplotlib.collections import PolyCollection
+
+    for body in bodies:
+        p, t = body.surface(size)
+        tri = (p @ cam.T)[t]                                   # (m, 3, 3)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        facing = np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
+        order = np.argsort(tri[:, :, 2].mean(axis=1))
+        grey = (0.45 + 0.4 * facing[order])[:, None] * np.ones(3)
+        ax.add_collection(PolyCollection(tri[order][:, :, :2], facecolors=grey,
+                                         edgecolors="none", zorder=0))
+
+
+def _draw_on(ax, P, radius, view, extent, bodies=()):
+    """Yarns P as shaded tubes on ``ax``, back to front (painter's algorithm),
+    over the ``bodies`` they rest on.
 
     ``extent`` (lo, hi) is a world box kept in view (default: P's own)."""
     cam = VIEWS[view]
+    if bodies:
+        flat = np.asarray(P).reshape(-1, 3)
+        _draw_bodies(ax, bodies, cam, float(np.ptp(flat, axis=0).max()))
     # at most ~SEGMENTS pieces: up to 8 straight segments a B-spline segment,
     # and on a large knit, whose loops are a few pixels wide, polylines of
     # several B-spline segments each
@@ -294,7 +331,8 @@ def _draw_on(ax, P, radius, view, extent):
     yarn = np.repeat(np.arange(nyarn), pieces)
     depth = seg[:, :, 2].mean(axis=1)
     order = np.argsort(depth)
-    lo, hi = _projected_box(P if extent is None else tuple(extent), view, radius)
+    lo, hi = _projected_box(_world_box([P], bodies) if extent is None
+                            else tuple(extent), view, radius)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
@@ -303,7 +341,8 @@ def _draw_on(ax, P, radius, view, extent):
 
     colours = _pyplot().cm.tab10(yarn % 10)[:, :3] * shade[:, None]
     for outline, c in ((1.15, np.zeros_like(colours)), (1.0, colours)):
-        tubes = LineCollection(seg[order][:, :, :2], colors=c[order], capstyle="round")
+        tubes = LineCollection(seg[order][:, :, :2], colors=c[order], capstyle="round",
+                               zorder=1)
         tubes.diameter = 2 * radius * outline       # in data units: _fit_widths
         ax.add_collection(tubes)
     if view == "front":
@@ -343,52 +382,55 @@ def _save(fig, path):
         _pyplot().close(fig)
 
 
-def draw(path, P, radius, title="", view="front", extent=None):
+def draw(path, P, radius, title="", view="front", extent=None, bodies=()):
     """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS), its
     limits fitted to P (or to the world box ``extent``)."""
-    box = _projected_box(P if extent is None else tuple(extent), view, radius)
+    box = _projected_box(_world_box([P], bodies) if extent is None else tuple(extent),
+                         view, radius)
     fig, ax = _pyplot().subplots(figsize=_figsize(box, 8.0), dpi=110)
-    _draw_on(ax, P, radius, view, extent)
+    _draw_on(ax, P, radius, view, extent, bodies)
     ax.set_title(title)
     fig.tight_layout()
     _fit_widths(fig)
     _save(fig, path)
 
 
-def draw_panels(path, frames, radius, titles, view="oblique", extent=None):
+def draw_panels(path, frames, radius, titles, view="oblique", extent=None, bodies=()):
     """One PNG with the fabrics ``frames`` side by side, in one common view
     and scale (e.g. the snapshots of a run, as the paper's Figures 10–13)."""
     if extent is None:
-        extent = _world_box(frames)
+        extent = _world_box(frames, bodies)
     w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
     fig, axes = _pyplot().subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
     for ax, P, title in zip(axes[0], frames, titles):
-        _draw_on(ax, P, radius, view, extent)
+        _draw_on(ax, P, radius, view, extent, bodies)
         ax.set_title(title)
     fig.tight_layout()
     _fit_widths(fig)
     _save(fig, path)
 
 
-def _world_box(frames):
-    """(lo, hi) around every fabric in ``frames``."""
-    flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames])
+def _world_box(frames, bodies=()):
+    """(lo, hi) around every fabric in ``frames`` and the bounded bodies."""
+    flat = np.concatenate([np.asarray(P).reshape(-1, 3) for P in frames]
+                          + [b.surface()[0] for b in bodies if b.bounded])
     return flat.min(0), flat.max(0)
 
 
-def animate(path, times, frames, radius, title="", view="three_quarter", fps=10):
+def animate(path, times, frames, radius, title="", view="three_quarter", fps=10,
+            bodies=()):
     """A GIF (matplotlib.animation, Pillow) of the fabrics ``frames`` at
     ``times``, in one view and scale, 800 pixels wide (loops visible)."""
     from matplotlib.animation import FuncAnimation, PillowWriter
 
-    extent = _world_box(frames)
+    extent = _world_box(frames, bodies)
     fig, ax = _pyplot().subplots(figsize=_figsize(_projected_box(extent, view, radius),
                                             10.0, most=12.0), dpi=80)
 
     def show(k):
         ax.clear()
-        _draw_on(ax, frames[k], radius, view, extent)
+        _draw_on(ax, frames[k], radius, view, extent, bodies)
         ax.set_title(f"{title}, t = {times[k]:.2f} s")
         _fit_widths(fig)
         return []

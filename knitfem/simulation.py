@@ -90,6 +90,7 @@ class Simulation:
         self.series, self.series_from = None, None
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
+        self.bodies = tuple(self.full.fabric.bodies)
         self.min_collider = np.inf
         self.weights = self.full.m.createVecLeft()
         one = self.full.m.createVecRight()
@@ -205,6 +206,9 @@ class Simulation:
             keep, note = self.series_from or (None, "")
             self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
                                               self.full.fabric.radius, keep, note)
+            if self.bodies:                  # for ParaView, beside the yarns
+                io.write_bodies(self._path("bodies.vtu"), self.bodies,
+                                float(np.ptp(P.reshape(-1, 3), axis=0).max()))
         self.series.write(self.step_count, self.t, P)
         if self.animation:
             self.movie.append((self.t, P))
@@ -222,16 +226,17 @@ class Simulation:
     def _write_panels(self):
         for title, P in self.frames:                 # title: "t = 0.4 s"
             io.draw(self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
-                    self.full.fabric.radius, view=self.view,
+                    self.full.fabric.radius, view=self.view, bodies=self.bodies,
                     title=f"{self.scene}, {self.system.kind} model, {title}")
         if self.frames:
             titles, frames = zip(*self.frames)
             io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
-                           self.full.fabric.radius, titles, view=self.view)
+                           self.full.fabric.radius, titles, view=self.view,
+                           bodies=self.bodies)
         if len(self.movie) > 1:
             times, frames = zip(*self.movie)
             io.animate(self._path(self.animation), times, frames,
-                       self.full.fabric.radius, view=self.view,
+                       self.full.fabric.radius, view=self.view, bodies=self.bodies,
                        title=f"{self.scene}, {self.system.kind} model")
 
     def checkpoint(self):

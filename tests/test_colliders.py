@@ -113,3 +113,35 @@ def test_jersey_dropped_on_a_floor_rests_on_it():
     P = model.yarn_points(x)
     assert P[:, 1].min() < low + 2 * fab.radius          # it reached the floor
     assert abs(v.getArray().reshape(-1, 3)[:, 1].mean()) < 0.05
+
+
+@pytest.mark.parametrize("body", [Sphere(np.array([0.0, 0.01, 0.0]), 0.004),
+                                  Capsule(np.zeros(3), np.array([0.01, 0.0, 0.0]), 0.002),
+                                  Plane(np.zeros(3), np.array([0.0, 2.0, 0.0]))])
+def test_body_surfaces_lie_on_the_bodies_and_are_written_and_drawn(tmp_path, body):
+    """A body's triangles have their corners on its surface (φ = 0); they go
+    to bodies.vtu (meshio reads triangles and the body index) and into the
+    pictures, behind the yarns."""
+    import matplotlib.pyplot as plt
+    import meshio
+
+    from knitfem import io
+
+    pts, tri = body.surface(0.01)
+    assert np.abs(body.distance(pts)[0]).max() < 1e-12
+    assert tri.min() >= 0 and tri.max() < len(pts)
+    area = 0.5 * np.linalg.norm(np.cross(pts[tri[:, 1]] - pts[tri[:, 0]],
+                                         pts[tri[:, 2]] - pts[tri[:, 0]]), axis=1).sum()
+    exact = {Sphere: lambda b: 4 * np.pi * b.R**2,
+             Capsule: lambda b: 4 * np.pi * b.R**2 + 2 * np.pi * b.R * np.linalg.norm(b.b - b.a),
+             Plane: lambda b: 0.02**2}[type(body)](body)
+    assert area == pytest.approx(exact, rel=0.03)           # inscribed facets
+    io.write_bodies(str(tmp_path / "bodies.vtu"), (body, body), 0.01)
+    mesh = meshio.read(tmp_path / "bodies.vtu")
+    assert len(mesh.cells_dict["triangle"]) == 2 * len(tri)
+    assert set(mesh.point_data["body"]) == {0.0, 1.0}
+    fig, ax = plt.subplots()
+    io._draw_on(ax, jersey(2, 2).X, 5e-4, "three_quarter", None, (body,))
+    z = sorted((c.get_zorder(), type(c).__name__) for c in ax.collections)
+    plt.close(fig)
+    assert z[0] == (0, "PolyCollection") and z[-1][1] == "LineCollection"
