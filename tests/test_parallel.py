@@ -123,3 +123,31 @@ def test_reduced_tangent_equals_serial():
     ok = par.comm.tompi4py().allreduce(
         local_rows_equal(par.stiffness(a_par), ser.stiffness(a_ser)), op=min)
     assert ok
+
+
+def test_sampled_reduced_model_sums_every_ranks_elements():
+    """The sampled reduced model on every rank's yarns (here all of them at
+    weight 1, so that it is exact): forces and Γᵀ K Γ, gathered α and summed
+    over the ranks, equal the exact reduced model's."""
+    from helpers import models as pair, to_scipy
+    from knitfem.reduced import ReducedModel
+    from knitfem.sampling import SampledElements
+
+    full, red = pair(PETSc.COMM_WORLD, jersey_fabric(Jersey(4, 3), hold="top"))
+    ne = full.elements.ne
+    s = ReducedModel(full, red.embedding,
+                     SampledElements(full, red.embedding, np.arange(ne), np.ones(ne)))
+    alpha = red.rest_state()
+    alpha.getArray()[:] += 2e-4 * np.random.default_rng(
+        PETSc.COMM_WORLD.rank).standard_normal(alpha.getLocalSize())
+    v = alpha.duplicate()
+    v.zeroEntries()
+    Q, ref = alpha.duplicate(), alpha.duplicate()
+    s.forces(alpha, v, Q)
+    red.forces(alpha, v, ref)
+    assert np.abs(Q.getArray() - ref.getArray()).max() <= 1e-12 * ref.norm(
+        PETSc.NormType.INFINITY)
+    K, Kref = to_scipy(s.stiffness(alpha)), to_scipy(red.stiffness(alpha))
+    assert abs(K - Kref).max() <= 1e-12 * abs(Kref).max()
+    assert s.elastic_energy(alpha) == pytest.approx(red.elastic_energy(alpha),
+                                                    rel=1e-12)
