@@ -27,6 +27,19 @@ p_{e,a}, the forces and the tangent are exact:
 4 × 4 blocks of the yarn element itself, so they enter the yarn elements'
 sparsity pattern: colliders never change it. Only the elements with a
 quadrature point within the gap are evaluated.
+
+Friction (Coulomb, μ = ``-knit_friction``) is lagged as in IPC (Li et al.,
+SIGGRAPH 2020): at the start of a step the points within the gap keep
+their normal force λ = w_q |X'| |f'(δ)|, tangent projector T = I − n nᵀ and
+position x⁰, and the step minimises, with the rest, the dissipative
+potential
+
+    D = Σ_q μ λ f₀(|u|),   u = T (x_q − x⁰),
+    f₀(y) = y²/ε − y³/(3ε²) + ε/3 (y < ε), y (y ≥ ε),   ε = 0.01 r,
+
+so a point slides against a force μλ and sticks (moves by less than ε a
+step) below it; ∂D/∂x_q = μλ f₁(y) û, ∂²D/∂x_q² = μλ (f₁' û ûᵀ + f₁/y
+(T − û ûᵀ)), positive semi-definite, in the same 4 × 4 blocks.
 """
 
 from dataclasses import dataclass
@@ -188,10 +201,51 @@ class Barrier:
     ``bodies``: energy, forces and tangent blocks (module docstring); gap ĥ =
     ``gap`` × r, κ = 1e4 ρ g / ĥ² (``weight`` = ρ g, N/m)."""
 
-    def __init__(self, bodies, elements, radius, weight, gap=0.1):
+    def __init__(self, bodies, elements, radius, weight, gap=0.1, friction=0.0):
         self.bodies, self.el, self.radius = bodies, elements, radius
         self.gap = gap * radius
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
+        self.mu, self.eps_slip = friction, 0.01 * radius
+        self.lagged = None
+
+    def lag(self, x):
+        """Friction's quantities at the step start x (module docstring):
+        (elements, μλ (e, q), T (e, q, 3, 3), x⁰ (e, q, 3)) of the elements
+        with a point within the gap; none without friction."""
+        if not self.mu:
+            return
+        e, _, n, _, d1, _ = self._active(x)
+        T = np.eye(3) - n[..., :, None] * n[..., None, :]
+        self.lagged = (e, -self.mu * d1, T, self.el.points(x)[e])
+
+    def _slip(self, x):
+        """(elements, μλ, T, u, y = |u|) of the lagged points at x."""
+        e, mul, T, x0 = self.lagged
+        xq = np.einsum("qa,eai->eqi", self.el.B, np.asarray(x)[self.el.conn[e]])
+        u = np.einsum("eqij,eqj->eqi", T, xq - x0)
+        return e, mul, T, u, np.linalg.norm(u, axis=-1)
+
+    def friction_potential(self, x):
+        """D = Σ μλ f₀(|u|) (local elements)."""
+        if self.lagged is None:
+            return 0.0
+        _, mul, _, _, y = self._slip(x)
+        eps = self.eps_slip
+        f0 = np.where(y < eps, y * y / eps - y**3 / (3 * eps * eps) + eps / 3, y)
+        return float(np.sum(mul * f0))
+
+    def _friction_terms(self, x):
+        """(elements, μλ f₁ û (e, q, 3), μλ ∂²f₀ (e, q, 3, 3))."""
+        e, mul, T, u, y = self._slip(x)
+        eps = self.eps_slip
+        slow = y < eps
+        f1_y = np.where(slow, 2 / eps - y / (eps * eps), 1 / np.maximum(y, 1e-300))
+        df1 = np.where(slow, 2 / eps - 2 * y / (eps * eps), 0.0)
+        uhat = u / np.maximum(y, 1e-300)[..., None]
+        uu = uhat[..., :, None] * uhat[..., None, :]
+        hess = mul[..., None, None] * (df1[..., None, None] * uu
+                                       + f1_y[..., None, None] * (T - uu))
+        return e, (mul * f1_y)[..., None] * u, hess
 
     def surface_distance(self, x):
         """δ = min over bodies of φ − r at every quadrature point, with the
@@ -226,22 +280,32 @@ class Barrier:
         return float(np.sum(self.el.W * self.kappa / 3 * s**3))
 
     def add_gradient(self, x, out, scale=1.0):
-        """out (ncp, 3) += scale ∂E_c/∂ε."""
+        """out (ncp, 3) += scale ∂(E_c + D)/∂ε (D: friction, when lagged)."""
         e, _, n, _, d1, _ = self._active(x)
         g = np.einsum("eq,qa,eqi->eai", d1, self.el.B, n)
         np.add.at(out, self.el.conn[e], scale * g)
+        if self.lagged is not None:
+            e, gq, _ = self._friction_terms(x)
+            g = np.einsum("qa,eqi->eai", self.el.B, gq)
+            np.add.at(out, self.el.conn[e], scale * g)
 
     def add_hessian(self, x, slot, values):
         """values[slot[e]] += ∂²E_c/∂p∂p of the active elements; ``slot`` the
         yarn elements' (ne, 12, 12) value slots."""
         e, _, n, H, d1, d2 = self._active(x)
-        if not len(e):
-            return
         Hq = d2[..., None, None] * n[..., :, None] * n[..., None, :] \
             + d1[..., None, None] * H                                # (e, q, 3, 3)
-        B = self.el.B
-        blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
-        np.add.at(values, slot[e], blocks)
+        self._add_blocks(e, Hq, slot, values)
+        if self.lagged is not None:
+            e, _, Hq = self._friction_terms(x)
+            self._add_blocks(e, Hq, slot, values)
+
+    def _add_blocks(self, e, Hq, slot, values):
+        """values[slot[e]] += Σ_q b_a b_b Hq of the elements e."""
+        if len(e):
+            B = self.el.B
+            blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
+            np.add.at(values, slot[e], blocks)
 
     def min_distance(self, x):
         """Smallest δ (local; +inf without elements)."""

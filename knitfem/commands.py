@@ -318,6 +318,9 @@ def run(comm):
     tilt, hold, turn = pose_from_options(opts)
     pull = pull_from_options(opts, jersey)
     bodies = colliders_from_options(opts)
+    friction = opts.getReal("friction", 0.0, "Coulomb friction coefficient between "
+                            "the yarns and the bodies (implicit integrators)",
+                            nonnegative=True)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     make_integrator = integrator_from_options(opts)
@@ -375,6 +378,7 @@ def run(comm):
         except ValueError as err:
             raise KnitError(str(err)) from None
         fabric.bodies = fabric.bodies + bodies
+        fabric.friction = friction
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
         from .reduced import sampling_note
@@ -396,6 +400,7 @@ def run(comm):
                                 lod and (lod.n1, lod.n2), hold, turn)
         if fabric.bodies:
             problem["bodies"] = [b.describe() for b in fabric.bodies]
+            problem["friction"] = friction
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,

@@ -38,6 +38,7 @@ class Fabric:
         (energies, contacts) stay those of X, world holds are taken where the
         start state puts them.
     bodies : rigid bodies the yarns keep out of (``colliders``).
+    friction : Coulomb coefficient μ between the yarns and the bodies.
     """
 
     X: np.ndarray
@@ -51,6 +52,7 @@ class Fabric:
                                                  np.zeros((0, 3))))
     start: tuple = field(default_factory=lambda: (np.eye(3), np.zeros(3)))
     bodies: tuple = ()
+    friction: float = 0.0
 
     @property
     def nyarn(self):

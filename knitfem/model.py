@@ -96,7 +96,8 @@ class FullModel:
                                          nq=nq)
             self.kernels = yarn_kernels(self.elements, kernels)
             self.barrier = Barrier(fabric.bodies, self.elements, fabric.radius,
-                                   material.rho * material.gravity) \
+                                   material.rho * material.gravity,
+                                   friction=fabric.friction) \
                 if fabric.bodies else None
             self.pattern = ElementPattern(self.conn, lay.cp_start, lay.ncp_local)
             n, N = lay.ncp_local, lay.ncp
@@ -165,6 +166,12 @@ class FullModel:
         return np.concatenate(parts).reshape(self.fabric.nyarn, self.fabric.ncp, 3)
 
     # -- mechanics -----------------------------------------------------------
+    def begin_step(self, x):
+        """A step starts from the state x: friction's normal forces and
+        reference points are taken there (lagged, ``colliders``)."""
+        if self.barrier is not None:
+            self.barrier.lag(self.yarn_points(x))
+
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
         P = self.yarn_points(x)

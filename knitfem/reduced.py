@@ -236,6 +236,10 @@ class EmbeddedModel:
         self.Gamma.mult(q, out)
         return out
 
+    def begin_step(self, q):
+        """A step starts from q: the full model's lagged friction at Γ q."""
+        self.full.begin_step(self.full_state(q, self.eps))
+
     def yarn_move(self, dq):
         """max |Γ δq| for the local part ``dq`` (array) of an update δq: how far
         it moves a yarn control point (collective)."""

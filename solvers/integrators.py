@@ -391,6 +391,7 @@ class NewtonStepper:
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
         stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
+        self.system.begin_step(x)               # lagged quantities (friction)
         c = self.control
         while True:
             h, landed = c.propose(t, t_stop)

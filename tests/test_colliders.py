@@ -145,3 +145,72 @@ def test_body_surfaces_lie_on_the_bodies_and_are_written_and_drawn(tmp_path, bod
     z = sorted((c.get_zorder(), type(c).__name__) for c in ax.collections)
     plt.close(fig)
     assert z[0] == (0, "PolyCollection") and z[-1][1] == "LineCollection"
+
+
+def test_friction_forces_and_tangent_match_finite_differences():
+    """Within a step the barrier and the lagged friction are one potential
+    E_c + D (colliders docstring): the gradient and the Hessian the barrier
+    adds against central differences of E_c + D and of the gradient, in the
+    sticking (|u| < ε) and the sliding regime."""
+    import scipy.sparse as sp
+
+    fab = jersey(2, 2)
+    fab.bodies = (Plane(np.array([0.0, fab.X[..., 1].min(), 0.0]),
+                        np.array([0.0, 1.0, 0.0])),)
+    fab.friction = 0.4
+    model = FullModel(SELF, fab, Material())
+    b, slot = model.barrier, model.slot3
+    indptr3, indices3, _ = model.pattern.blocks3()
+    x0 = model.yarn_points(model.rest_state()).copy()
+    b.lag(x0)
+    assert len(b.lagged[0]) > 0
+    rng = np.random.default_rng(3)
+
+    def gradient(x):
+        g = np.zeros_like(x)
+        b.add_gradient(x, g)
+        return g
+
+    for size in (0.3 * b.eps_slip, 30 * b.eps_slip):
+        x = x0 + size * rng.standard_normal(x0.shape)
+        values = np.zeros_like(model.K_values)
+        b.add_hessian(x, slot, values)
+        K = sp.csr_matrix((values, indices3, indptr3))
+        h, d = 1e-3 * b.eps_slip, rng.standard_normal(x.shape)
+        total = lambda y: b.energy(y) + b.friction_potential(y)   # noqa: E731
+        dP = (total(x + h * d) - total(x - h * d)) / (2 * h)
+        assert dP == pytest.approx(np.sum(gradient(x) * d), rel=1e-5)
+        fd = (gradient(x + h * d) - gradient(x - h * d)) / (2 * h)
+        assert np.allclose(K @ d.ravel(), fd.ravel(), rtol=1e-4,
+                           atol=1e-6 * np.abs(fd).max())
+    model.destroy()
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.1, 0.5])
+def test_yarn_on_an_inclined_plane_sticks_or_slides_as_coulomb_says(mu):
+    """A straight free yarn lying on a plane tilted by 10° (tan = 0.18),
+    backward Euler 0.1 s: without friction it slides with g sin θ, with
+    μ = 0.1 with g (sin θ − μ cos θ), with μ = 0.5 it stays (within 2 % of
+    the frictionless slide: below μλ a point still moves by up to ε a step)."""
+    from knitfem.fabric import Fabric
+    from helpers import run
+    from solvers.integrators import BackwardEuler
+
+    theta, r = np.radians(10.0), 5e-4
+    down = np.array([np.cos(theta), -np.sin(theta), 0.0])        # down the slope
+    normal = np.array([np.sin(theta), np.cos(theta), 0.0])
+    s = np.linspace(-0.01, 0.01, 12)
+    X = (s[:, None] * np.array([0.0, 0.0, 1.0]) + 1.099 * r * normal)[None]  # resting
+    fab = Fabric(X=X, radius=r, friction=mu,
+                 bodies=(Plane(np.zeros(3), normal),))
+    model = FullModel(SELF, fab, Material(EA=10.0, EI=1e-6, rho=1e-3))
+    t, steps = 0.1, 100
+    _, x, v = run(model, BackwardEuler, t / steps, steps)
+    moved = (x.getArray().reshape(-1, 3) - X[0]).mean(axis=0) @ down
+    g = 9.81
+    slide = 0.5 * g * max(np.sin(theta) - mu * np.cos(theta), 0.0) * t * t
+    if mu >= np.tan(theta):      # sticks, but for the creep of f₀'s smoothing
+        assert abs(moved) < 0.02 * 0.5 * g * np.sin(theta) * t * t
+    else:
+        assert moved == pytest.approx(slide, rel=0.05)
+    model.destroy()
