@@ -53,7 +53,8 @@ matplotlib.use("Agg")
 
 __all__ = ["PETSc", "KnitError", "KnitOptions", "RESULTS", "case", "record", "run",
            "write_json", "read_json", "save_figure", "step_split", "split_table",
-           "wall", "stacked_bars", "markdown_table", "sizes_option", "rms_distance"]
+           "wall", "stacked_bars", "markdown_table", "sizes_option", "rms_distance",
+           "drop"]
 
 RESULTS = os.path.abspath(KnitOptions("bench_").getString(
     "results", os.path.join("out", "benchmarks"), "folder of the JSON results and "
@@ -336,6 +337,13 @@ def markdown_table(header, rows):
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def drop(summary, key="drop"):
+    """The lowest point's fall of a run's summary, or with ``key``
+    "drop_relative_difference" that of a comparison (results written before
+    summary.json named it ``drop`` say ``sag``); "-" when absent."""
+    return summary.get(key, summary.get(key.replace("drop", "sag"), "-"))
 
 
 def rms_distance(P, Q):

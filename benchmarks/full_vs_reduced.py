@@ -23,9 +23,9 @@ import sys
 
 import numpy as np
 
-from .common import (KnitOptions, PETSc, case, markdown_table, read_json, record, run,
-                     save_figure, sizes_option, split_table, stacked_bars, step_split,
-                     wall, write_json)
+from .common import (KnitOptions, PETSc, case, drop, markdown_table, read_json, record, run,
+                     save_figure, sizes_option, split_table, step_split, wall,
+                     write_json)
 
 STUDY = "full_vs_reduced"
 MODELS = ("full", "reduced", "reduced exact")     # reduced: sampled (ECSW)
@@ -55,7 +55,7 @@ def before_runs(name):
         return old["before"]
     return [dict(rows=r["rows"], cols=r["cols"], model=r["model"],
                  newton=r["newton"], steps=r["steps"], wall_s=r["wall_s"],
-                 per_step_s=r["per_step_s"], summary=dict(drop=r["summary"]["drop"]))
+                 per_step_s=r["per_step_s"], summary=dict(drop=drop(r["summary"])))
             for r in old["runs"] if "per_step_s" in r]
 
 
@@ -63,7 +63,7 @@ def compare(full, reduced):
     """Relative drop difference and centroid distance, reduced vs full."""
     if "failed" in full or "failed" in reduced:
         return None
-    sf, sr = full["summary"]["drop"], reduced["summary"]["drop"]
+    sf, sr = drop(full["summary"]), drop(reduced["summary"])
     dc = np.subtract(reduced["summary"]["centroid"], full["summary"]["centroid"])
     return dict(drop_relative_difference=(sr - sf) / sf,
                 centroid_distance=float(np.linalg.norm(dc)))
@@ -92,7 +92,8 @@ def plot(rec):
         ax.tick_params(axis="x", labelsize=7)
         ax.set_title(f"{rows}x{cols}")
     axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
-    fig.suptitle(f"hanging jersey, backward Euler dt = {runs[0]['summary']['dt_next']:g}, "
+    first = runs[0]["summary"]                   # "dt" in results before dt_next
+    fig.suptitle(f"hanging jersey, backward Euler dt = {first.get('dt_next', first.get('dt')):g}, "
                  f"t_end = {rec['t_end']:g} s, {rec['ranks']} rank(s)", fontsize=10)
     save_figure(fig, rec["name"])
 
@@ -111,7 +112,7 @@ def report(comm, rec):
         rows.append([f"{r['rows']}x{r['cols']}", r["model"], r.get("unknowns", "-"),
                      r.get("newton", "-"), wall(r),
                      1e3 * r["wall_s"]["run"] / r["steps"] if s else "-",
-                     1e3 * s["drop"] if s else "-",
+                     1e3 * drop(s) if s else "-",
                      str(np.round(s["lowest_point"], 5).tolist()) if s else "-",
                      str(np.round(s["centroid"], 5).tolist()) if s else "-"])
     PETSc.Sys.Print(markdown_table(
@@ -122,11 +123,11 @@ def report(comm, rec):
                                 [r["per_step_s"] for r in ok]))
     lines = []
     for r in ok:
-        for when, run in (("before", match(rec.get("before", []), r)), ("after", r)):
-            if run is not None:
-                split = iteration_split(run)
+        for when, one in (("before", match(rec.get("before", []), r)), ("after", r)):
+            if one is not None:
+                split = iteration_split(one)
                 lines.append([f"{r['rows']}x{r['cols']}", r["model"], when,
-                              run["newton"], run["wall_s"]["run"],
+                              one["newton"], one["wall_s"]["run"],
                               *(1e3 * split[p] for p in PARTS),
                               1e3 * sum(split.values())])
     PETSc.Sys.Print(markdown_table(
@@ -135,7 +136,7 @@ def report(comm, rec):
     PETSc.Sys.Print(markdown_table(
         ["size", "model", "relative drop difference", "centroid distance [mm]"],
         [[f"{d['rows']}x{d['cols']}", d.get("model", "reduced"),
-          d["drop_relative_difference"], 1e3 * d["centroid_distance"]]
+          drop(d, "drop_relative_difference"), 1e3 * d["centroid_distance"]]
          for d in rec["differences"]]))
     if comm.rank == 0 and ok:
         plot(rec)

@@ -22,7 +22,7 @@ import sys
 
 import numpy as np
 
-from .common import (RESULTS, KnitError, KnitOptions, PETSc, case, forced,
+from .common import (RESULTS, KnitError, KnitOptions, PETSc, case, drop, forced,
                      log_since, log_snapshot, markdown_table, memory, read_json,
                      record, rms_distance, run, save_figure, sizes_option, wall,
                      write_json)
@@ -109,7 +109,7 @@ def sweep(comm, rows, cols, t_end, lods):
         r["lod"] = [n1, n2]
         if "failed" not in r and "failed" not in full:
             r["error"] = comm.tompi4py().bcast(error(
-                P, Pref, r["summary"]["drop"], full["summary"]["drop"], full["radius"])
+                P, Pref, drop(r["summary"]), drop(full["summary"]), full["radius"])
                 if comm.rank == 0 else None)
         out["reduced"].append(r)
     return out
@@ -124,9 +124,9 @@ def report(comm, rec):
             rows.append([f"{s['rows']}x{s['cols']}",
                          "x".join(map(str, r["lod"])) if "lod" in r else "full",
                          r.get("unknowns", "-"), r.get("newton", "-"), wall(r),
-                         1e3 * r["summary"]["drop"] if "summary" in r else "-",
+                         1e3 * drop(r["summary"]) if "summary" in r else "-",
                          e.get("rms_over_radius", "-"), e.get("max_over_radius", "-"),
-                         e.get("drop_relative_difference", "-")])
+                         drop(e, "drop_relative_difference")])
     PETSc.Sys.Print(markdown_table(
         ["size", "model", "unknowns", "Newton its", "wall [s]", "drop [mm]",
          "RMS dist / r", "max dist / r", "rel. drop diff."], rows))

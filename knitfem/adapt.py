@@ -60,7 +60,7 @@ from petsc4py import PETSc
 
 from solvers.saddle import SaddlePoint, saddle_ksp, solve_saddle
 
-from .mixed import MixedModel, MixedSpace, VolumeWeights
+from .mixed import MixedModel, MixedSpace
 
 __all__ = ["Indicator", "Adaptation", "transfer", "adaptation_from_options"]
 

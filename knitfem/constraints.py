@@ -162,7 +162,7 @@ def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, nseg, X):
     cb, vb = point_rows(yarn_offset[yarn_b], s_b, nseg)
     da, db = bspline.basis(bspline.locate(s_a, nseg)[1], 1), \
         bspline.basis(bspline.locate(s_b, nseg)[1], 1)
-    n, zero = len(ca), np.zeros((len(ca), 4))
+    zero = np.zeros((len(ca), 4))
     w = np.concatenate([va, -vb], axis=1)                        # r
     ta = np.concatenate([da, zero], axis=1)                      # t_a
     tb = np.concatenate([zero, db], axis=1)                      # t_b

@@ -4,7 +4,6 @@ model tests run serial and under mpirun (COMM_WORLD)."""
 
 import numpy as np
 import pytest
-from petsc4py import PETSc
 
 from helpers import COMM, gather, jersey
 from knitfem import constraints as cons

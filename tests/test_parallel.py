@@ -1,7 +1,5 @@
 """Distributed by whole yarns: matrices under mpirun -n P equal one rank's."""
 
-import sys
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
