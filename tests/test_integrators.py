@@ -161,3 +161,39 @@ def test_position_history_estimate_is_exact_for_a_cubic():
     # a method with local error c h³ ε⃛ = 0.1 h³ · 6 lands here:
     assert hist.estimate(np.array([exact_next + 0.6 * h**3]), h, e)
     assert e[0] == pytest.approx(0.6 * h**3, rel=1e-12)
+
+
+@pytest.mark.parametrize("method", [BackwardEuler, BDF2, GeneralizedAlpha])
+def test_newton_matrix_is_the_derivative_of_the_residual(method):
+    """The saddle-point matrix each method gives Newton (σκK + (1 + σc_d)M,
+    the frame-indifferent contacts' curvature, C(ε) and its transpose)
+    equals central differences of the method's residual in (ε̇_{n+1}, μ),
+    at a generic state of a hanging jersey after two steps."""
+    from knitfem.pattern import Jersey
+
+    model = FullModel(SELF, make_fabric("hanging", Jersey(3, 3)), Material(damping=2.0))
+    integ = method(model, 1e-2)
+    x, v = model.start_state(), model.start_state()
+    v.zeroEntries()
+    integ.step(0.0, x, v)
+    integ.step(0.01, x, v)
+    integ.xn, integ.vn = x.copy(), v.copy()
+    integ.coefficients(1e-2)
+    rng = np.random.default_rng(7)
+    z = integ.saddle.createVec()
+    zu, zl = integ.saddle.split(z)
+    zu[:] = v.getArray() + 1e-3 * rng.standard_normal(len(zu))
+    zl[:] = 1e-6 * rng.standard_normal(len(zl))
+    integ._jacobian(None, z, None, None)
+    d, Jd = z.duplicate(), z.duplicate()
+    d.getArray()[:] = rng.standard_normal(z.getLocalSize())
+    integ.saddle.K.mult(d, Jd)
+    h = 1e-6
+    F = [z.duplicate() for _ in range(2)]
+    for sign, out in zip((1, -1), F):
+        zs = z.copy()
+        zs.axpy(sign * h, d)
+        integ._residual(None, zs, out)
+    fd = (F[0].getArray() - F[1].getArray()) / (2 * h)
+    assert np.linalg.norm(Jd.getArray() - fd) <= 1e-8 * np.linalg.norm(fd)
+    model.destroy()
