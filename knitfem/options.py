@@ -165,15 +165,21 @@ class KnitOptions:
         return False
 
 
+def petsc_library():
+    """(PETSc's C library under petsc4py, ctypes' PetscInt), for the few
+    calls petsc4py 3.18 does not wrap."""
+    Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+    return ctypes.CDLL(PETSc.__file__), Int
+
+
 def unused_options():
     """Names of the options in PETSc's database that nothing has read
     (PetscOptionsLeftGet; empty where the symbol cannot be found)."""
     try:
-        lib = ctypes.CDLL(PETSc.__file__)
+        lib, Int = petsc_library()
         get, restore = lib.PetscOptionsLeftGet, lib.PetscOptionsLeftRestore
     except (OSError, AttributeError):
         return []
-    Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
     n = Int()
     names, values = (ctypes.POINTER(ctypes.c_char_p)() for _ in range(2))
     args = (None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))

@@ -168,10 +168,12 @@ def reduced_from_options(opts, full, embedding):
     else:
         elements, weights, report = sampled_set(full, embedding, tol)
         report["source"] = f"{'cached' if report['cached'] else 'trained'} {report['cache']}"
+    from mpi4py import MPI
+
     comm = full.comm.tompi4py()
     total = comm.allreduce(report["elements"]), comm.allreduce(report["of"])
-    errors = comm.allreduce(report["training_error"], op=__import__("mpi4py").MPI.MAX), \
-        comm.allreduce(report["held_out_error"], op=__import__("mpi4py").MPI.MAX)
+    errors = (comm.allreduce(report["training_error"], op=MPI.MAX),
+              comm.allreduce(report["held_out_error"], op=MPI.MAX))
     model = ReducedModel(full, embedding,
                          SampledElements(full, embedding, elements, weights))
     model.sampling = dict(report, kind=kind, elements=total[0], of=total[1],

@@ -42,9 +42,10 @@ def sag_below_supports(fabric, P, low):
     yarns, s = fabric.fixed
     if not len(yarns):
         return None
-    held = min(bspline.curve_points(P[y], np.array([si]))[0, 1]
-               for y, si in zip(yarns, s))
-    return float(held - low[1])
+    k, u = bspline.locate(np.asarray(s, dtype=float), P.shape[1] - 3)
+    held = np.einsum("na,na->n", bspline.basis(u),
+                     P[np.asarray(yarns)[:, None], k[:, None] + np.arange(4), 1])
+    return float(held.min() - low[1])
 
 
 class Simulation:
@@ -87,6 +88,7 @@ class Simulation:
         self.stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
         self.steps_taken = []            # dt of every accepted step
         self.energy = []                 # (t, kinetic, elastic + gravity)
+        self.energy_seen = None          # check_energy's summary of them
         self.series, self.series_from = None, None
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
@@ -306,6 +308,7 @@ class Simulation:
         self.initial_lowest = extra.get("initial_lowest", self.initial_lowest)
         self.steps_taken = list(extra.get("steps_taken", []))
         self.energy = [tuple(e) for e in extra.get("energy", [])]
+        self.energy_seen = None
         same = [ckpt.fingerprint.get(k) == mine[k] for k in ("integrator", "dt")]
         if extra.get("integrator") and all(same):       # else it starts afresh
             self.integrator.set_state(self.local_parts(extra["integrator"]))
@@ -485,14 +488,20 @@ class Simulation:
         step feeding unresolved stiff modes, say)."""
         if not self.energy_growth or len(self.energy) < 3:
             return
-        t, kin, pot = np.array(self.energy).T
-        total = kin + pot
-        scale = max(kin[:-1].max(), pot[0] - pot[:-1].min())
-        grown = total[-1] - total.min()
+        # (points seen, lowest total, highest kinetic, lowest potential) of the
+        # earlier points, brought up to date with the new ones only
+        seen, low, kin_max, pot_min = self.energy_seen or (0, np.inf, 0.0, np.inf)
+        for _, kin, pot in self.energy[seen:-1]:
+            low, kin_max, pot_min = min(low, kin + pot), max(kin_max, kin), min(pot_min, pot)
+        self.energy_seen = (len(self.energy) - 1, low, kin_max, pot_min)
+        _, kin, pot = self.energy[-1]
+        total, low = kin + pot, min(low, kin + pot)
+        scale = max(kin_max, self.energy[0][2] - pot_min)
+        grown = total - low
         if scale > 0 and grown > self.energy_growth * scale:
             raise SimulationError(
-                f"the total energy grew by {grown:.3g} J (from {total.min():.3g} to "
-                f"{total[-1]:.3g} J) with no source, {grown / scale:.3g} times the "
+                f"the total energy grew by {grown:.3g} J (from {low:.3g} to "
+                f"{total:.3g} J) with no source, {grown / scale:.3g} times the "
                 f"motion's energy {scale:.3g} J: the integrator is unstable here "
                 f"(-knit_energy_growth {self.energy_growth:g}; try -knit_integrator "
                 f"bdf2)", curable=False)

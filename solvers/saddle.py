@@ -249,20 +249,15 @@ PC_FAILED = {-1: "set-up error", 1: "structurally zero pivot",
              4: "factorisation failed", 5: "a sub-preconditioner failed"}
 
 
-def _libpetsc():
-    """The PETSc C library under petsc4py (for the calls it does not wrap)."""
-    import ctypes
-
-    return ctypes.CDLL(PETSc.__file__)
-
-
 def pc_failure(pc):
     """Why a preconditioner failed, in words: its PCFailedReason, followed
     into fieldsplit blocks, and a zero pivot's row and value (PETSc's
     PCGetFailedReason and MatFactorGetErrorZeroPivot through ctypes)."""
     import ctypes
 
-    lib, code = _libpetsc(), ctypes.c_int(0)
+    from knitfem.options import petsc_library
+
+    (lib, Int), code = petsc_library(), ctypes.c_int(0)
     lib.PCGetFailedReason(ctypes.c_void_p(pc.handle), ctypes.byref(code))
     where = f"PC {pc.getType()}"
     if pc.getType() == "fieldsplit":
@@ -275,7 +270,7 @@ def pc_failure(pc):
             why = _reason(sub) if other else pc_failure(sub.getPC())
             return f"{where}, block {name!r} ({sub.getType()}): {why}"
     if code.value in (1, 2) and pc.getType() in ("lu", "cholesky", "ilu", "icc"):
-        pivot, row = ctypes.c_double(0.0), ctypes.c_int(0)
+        pivot, row = ctypes.c_double(0.0), Int(0)
         lib.MatFactorGetErrorZeroPivot(ctypes.c_void_p(pc.getFactorMatrix().handle),
                                        ctypes.byref(pivot), ctypes.byref(row))
         return (f"{where}: {PC_FAILED[code.value]} in row {row.value} "
