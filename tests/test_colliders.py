@@ -214,3 +214,47 @@ def test_yarn_on_an_inclined_plane_sticks_or_slides_as_coulomb_says(mu):
     else:
         assert moved == pytest.approx(slide, rel=0.05)
     model.destroy()
+
+
+def test_bodies_and_friction_do_not_care_which_way_the_world_faces():
+    """Knit and bodies turned and moved together: the barrier's energy, the
+    lagged friction's potential and their Hessian's spectrum stay, and the
+    forces turn with them."""
+    import scipy.sparse as sp
+
+    from knitfem.scenes import rotation
+
+    R, shift = rotation((30, -50, 70)), np.array([0.01, -0.02, 0.03])
+    fab = jersey(2, 2)
+    low = fab.X[..., 1].min()
+    bodies = (Sphere(np.array([0.004, low - 0.003, 0.002]), 0.0032),
+              Capsule(np.array([0.0, low + 1e-4, -0.01]),
+                      np.array([0.01, low + 1e-4, 0.01]), 5e-4),
+              Plane(np.array([0.0, low + 2e-4, 0.0]), np.array([0.1, 1.0, 0.0])))
+    turned = (Sphere(R @ bodies[0].centre + shift, bodies[0].R),
+              Capsule(R @ bodies[1].a + shift, R @ bodies[1].b + shift, bodies[1].R),
+              Plane(R @ bodies[2].point + shift, R @ bodies[2].normal))
+    rng = np.random.default_rng(5)
+    x = fab.X.reshape(-1, 3) + 1e-4 * rng.standard_normal((fab.X.size // 3, 3))
+    x0 = fab.X.reshape(-1, 3)
+    out = []
+    for bs, move in ((bodies, lambda p: p), (turned, lambda p: p @ R.T + shift)):
+        fab.bodies, fab.friction = bs, 0.3
+        model = FullModel(SELF, fab, Material())
+        b = model.barrier
+        b.lag(move(x0))
+        g = np.zeros_like(x)
+        b.add_gradient(move(x), g)
+        slot = model.slot3
+        values = np.zeros_like(model.K_values)
+        b.add_hessian(move(x), slot, values)
+        indptr3, indices3, _ = model.pattern.blocks3()
+        K = sp.csr_matrix((values, indices3, indptr3)).toarray()
+        out.append((b.energy(move(x)), b.friction_potential(move(x)), g,
+                    np.linalg.eigvalsh(0.5 * (K + K.T))))
+        model.destroy()
+    (e0, d0, g0, k0), (e1, d1, g1, k1) = out
+    assert e0 > 0 and d0 > 0
+    assert e1 == pytest.approx(e0, rel=1e-9) and d1 == pytest.approx(d0, rel=1e-9)
+    assert np.allclose(g1, g0 @ R.T, rtol=0, atol=1e-9 * np.abs(g0).max())
+    assert np.allclose(k1, k0, rtol=0, atol=1e-9 * np.abs(k0).max())

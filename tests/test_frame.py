@@ -26,12 +26,20 @@ def system_of(kind, fabric, gravity):
         return full
     if kind == "reduced":
         return red
+    if kind == "sampled":           # any sampled set and weights will do
+        from knitfem.reduced import ReducedModel
+        from knitfem.sampling import SampledElements
+
+        rng = np.random.default_rng(COMM.rank)
+        some = rng.choice(full.elements.ne, full.elements.ne // 4, replace=False)
+        return ReducedModel(full, red.embedding, SampledElements(
+            full, red.embedding, some, rng.uniform(0.5, 5.0, len(some))))
     return mixed(full, red, region(full, red, [(4, 5, 4, 6)]))
 
 
 @pytest.mark.parametrize("gravity", [0.0, 9.81])
 @pytest.mark.parametrize("turn", TURNS)
-@pytest.mark.parametrize("kind", ["full", "reduced", "mixed"])
+@pytest.mark.parametrize("kind", ["full", "reduced", "sampled", "mixed"])
 def test_started_turned_strains_nothing(kind, turn, gravity):
     """Started turned, a free 6 x 6 jersey keeps E_el and |g| at round-off
     over five implicit steps: at rest without gravity, falling rigidly with."""
