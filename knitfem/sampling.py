@@ -39,6 +39,7 @@ another file, so no cached set can be stale.
 import hashlib
 import os
 import time
+import zipfile
 
 import numpy as np
 
@@ -297,8 +298,8 @@ def sampled_set(full, embedding, tol):
             report.update((k, int(report[k])) for k in ("elements", "of", "candidates"))
             report.update(cache=path, cached=True)
             return f["elements"], f["weights"], report
-    except (OSError, KeyError, ValueError):
-        pass
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        pass                          # none, or unreadable: trained again
     elements, weights, report = train(full, embedding, tol)
     keys = [k for k, v in report.items() if isinstance(v, (int, float))]
     try:

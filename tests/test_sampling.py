@@ -120,6 +120,11 @@ def test_training_meets_its_tolerance_and_caches(tmp_path, monkeypatch):
     assert (w > 0).all() and rep["max_weight"] == pytest.approx(w.max())
     el2, w2, rep2 = sampled_set(full, emb, 1e-2)
     assert rep2["cached"] and np.array_equal(el, el2) and np.array_equal(w, w2)
+    for junk in (b"", b"PK\x03\x04 cut short"):      # a damaged cache is trained again
+        with open(rep2["cache"], "wb") as f:
+            f.write(junk)
+        el3, w3, rep3 = sampled_set(full, emb, 1e-2)
+        assert not rep3["cached"] and np.array_equal(el, el3) and np.array_equal(w, w3)
     other, _ = models(SELF, jersey(8, 8, hold="top"), Material(EA=2.0))
     assert sampling.cache_key(other, emb, 1e-2) != sampling.cache_key(full, emb, 1e-2)
     for m in (other, red, full):
