@@ -51,7 +51,7 @@ test-serial:
 
 test-parallel:
 	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py tests/test_contacts.py \
-	  tests/test_frame.py
+	  tests/test_frame.py tests/test_tube.py
 
 clean:
 	rm -rf $(VENV) out *.egg-info build knitfem/_compiled.c knitfem/*.so

@@ -10,11 +10,15 @@ at local parameter u ∈ [0, 1], is
 
 The global parameter s = k + u runs over [0, n − 3]. At a junction (u = 0)
 P = (p_k + 4 p_{k+1} + p_{k+2})/6, so the value there is centred on p_{k+1}.
+
+A closed (periodic) curve has no end points: its n control points make n
+segments, segment k blending p_{(k+a) mod n}, and s is read modulo n.
 """
 
 import numpy as np
 
-__all__ = ["basis", "gauss", "locate", "curve_points", "junction_symbol"]
+__all__ = ["basis", "gauss", "segments", "span", "locate", "curve_points",
+           "junction_symbol", "periodic_interpolant"]
 
 
 def basis(u, nu=0):
@@ -54,19 +58,33 @@ def gauss(nq):
     return 0.5 * (x + 1.0), 0.5 * w
 
 
-def locate(s, nseg):
-    """Split global parameters s ∈ [0, nseg] into (segment k, local u)."""
+def segments(ncp, closed=False):
+    """Segments of a curve of ncp control points: ncp − 3, or ncp if closed."""
+    return ncp if closed else ncp - 3
+
+
+def span(k, ncp, closed=False):
+    """Control points (..., 4) that segment k blends: k … k + 3, modulo ncp
+    on a closed curve."""
+    idx = np.asarray(k)[..., None] + np.arange(4)
+    return idx % ncp if closed else idx
+
+
+def locate(s, nseg, closed=False):
+    """Split global parameters s into (segment k, local u): s ∈ [0, nseg]
+    (clipped to the end segments), or s modulo nseg on a closed curve."""
     s = np.asarray(s, dtype=float)
+    if closed:
+        s = np.mod(s, nseg)
     k = np.clip(np.floor(s).astype(int), 0, nseg - 1)
     return k, s - k
 
 
-def curve_points(P, s, nu=0):
+def curve_points(P, s, nu=0, closed=False):
     """Evaluate d^nu P/ds^nu at global parameters s for control points P (n, 3)."""
-    k, u = locate(s, len(P) - 3)
-    B = basis(u, nu)
-    idx = k[..., None] + np.arange(4)
-    return np.einsum("...a,...ai->...i", B, P[idx])
+    n = len(P)
+    k, u = locate(s, segments(n, closed), closed)
+    return np.einsum("...a,...ai->...i", basis(u, nu), P[span(k, n, closed)])
 
 
 def junction_symbol(omega):
@@ -76,3 +94,13 @@ def junction_symbol(omega):
     junctions after division by (4 + 2 cos ω)/6, ω in radians per segment.
     """
     return (4.0 + 2.0 * np.cos(omega)) / 6.0
+
+
+def periodic_interpolant(points):
+    """Control points p (n, 3) of the closed curve through ``points`` (n, 3)
+    at its junctions: (p_{i−1} + 4 p_i + p_{i+1})/6 = x_i (indices mod n),
+    solved by FFT (the circulant's symbol (4 + 2 cos 2πm/n)/6 ≥ 1/3)."""
+    x = np.asarray(points, dtype=float)
+    n = len(x)
+    symbol = junction_symbol(2 * np.pi * np.arange(n) / n)
+    return np.fft.ifft(np.fft.fft(x, axis=0) / symbol[:, None], axis=0).real

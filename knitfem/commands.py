@@ -7,17 +7,22 @@ import numpy as np
 from petsc4py import PETSc
 
 from .options import KnitError, KnitOptions
-from .pattern import HOLDS, Jersey, LoopShape, jersey_fabric, min_yarn_distance
+from .pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
 __all__ = ["dofs", "pattern", "run", "deform"]
 
 
 def jersey_from_options(opts, rows=7, cols=7):
-    """The jersey declared by -knit_rows, -knit_cols, -knit_radius."""
+    """The jersey declared by -knit_rows, -knit_cols, -knit_radius and
+    -knit_shape."""
     r = opts.getInt("rows", rows, "courses (rows) of stitches; one yarn each", 1)
-    c = opts.getInt("cols", cols, "stitches (columns) a course", 1)
+    c = opts.getInt("cols", cols, "stitches (columns) a course (around a tube)", 1)
     radius = opts.getReal("radius", 5e-4, "yarn radius [m]", positive=True)
-    return Jersey(r, c, radius, LoopShape())
+    knit = opts.getChoice("shape", "flat", SHAPES, "a flat swatch, or a tube knitted "
+                          "in the round (every course closed on itself)")
+    if knit == "tube" and c < 3:
+        raise KnitError(f"-knit_cols {c}: a tube needs at least 3 stitches around")
+    return Jersey(r, c, radius, LoopShape(), knit)
 
 
 def pull_from_options(opts, jersey):
@@ -118,11 +123,13 @@ def pattern(comm):
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
-    dist, f, g = min_yarn_distance(list(fabric.X))
-    base = os.path.join(out, f"jersey_{jersey.rows}x{jersey.cols}")
-    io.write_centrelines(base + ".vtu", fabric.X, jersey.radius)
-    io.draw(base + ".png", fabric.X, jersey.radius,
-            title=f"jersey {jersey.rows}x{jersey.cols}")
+    P = fabric.open_splines(fabric.X)
+    dist, f, g = min_yarn_distance(list(P))
+    name = f"{'tube' if jersey.closed else 'jersey'}_{jersey.rows}x{jersey.cols}"
+    base = os.path.join(out, name)
+    io.write_centrelines(base + ".vtu", P, jersey.radius)
+    io.draw(base + ".png", P, jersey.radius, title=name.replace("_", " "),
+            view="three_quarter" if jersey.closed else "front")
     PETSc.Sys.Print(f"wrote {base}.vtu and {base}.png; {fabric.nyarn} yarns of "
                     f"{fabric.ncp} control points, min distance between yarns "
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
@@ -213,7 +220,7 @@ def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod,
         shape = dict(length=length, segments=nseg,
                      **(dict(span=span) if scene == "catenary" else {}))
     else:
-        shape = dict(rows=jersey.rows, cols=jersey.cols,
+        shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit,
                      **(dict(tilt=tilt, hold=hold) if scene == "hanging" else {}))
     if any(turn):
         shape["start_rotation"] = list(turn)
@@ -501,10 +508,8 @@ def fitting_metrics(fabric, P, nq=4):
     from . import constraints as cons
     from .yarn import YarnElements
 
-    nseg = fabric.ncp - 3
-    conn = (np.arange(fabric.nyarn)[:, None, None] * fabric.ncp
-            + np.arange(nseg)[None, :, None] + np.arange(4)).reshape(-1, 4)
-    el = YarnElements(fabric.X.reshape(-1, 3), conn, 1.0, 1.0, 0.0, nq=nq)
+    el = YarnElements(fabric.X.reshape(-1, 3), fabric.connectivity(0, fabric.nyarn),
+                      1.0, 1.0, 0.0, nq=nq)
     e = el.strain(P.reshape(-1, 3))
     dist = min_yarn_distance(list(P), 16)[0]
     contacts, _ = cons.build(fabric)

@@ -146,22 +146,23 @@ class Contacts:
                                             self.scale, self.rest)))
 
 
-def point_rows(offset, s, nseg, nu=0):
+def point_rows(offset, s, ncp, closed=False, nu=0):
     """B-spline weights of d^nu P/ds^nu at s: (cols (n,4), vals (n,4)).
 
-    offset is the global index of each point's yarn's first control point.
+    offset is the global index of each point's yarn's first control point;
+    the yarns have ncp control points and are closed or open.
     """
-    k, u = bspline.locate(s, nseg)
-    cols = np.asarray(offset)[..., None] + k[:, None] + np.arange(4)
+    k, u = bspline.locate(s, bspline.segments(ncp, closed), closed)
+    cols = np.asarray(offset)[..., None] + bspline.span(k, ncp, closed)
     return cols, bspline.basis(u, nu)
 
 
-def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, nseg, X):
+def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X):
     """Contacts of P_a(s_a) with P_b(s_b), invariants taken at rest X (ncp, 3)."""
-    ca, va = point_rows(yarn_offset[yarn_a], s_a, nseg)
-    cb, vb = point_rows(yarn_offset[yarn_b], s_b, nseg)
-    da, db = bspline.basis(bspline.locate(s_a, nseg)[1], 1), \
-        bspline.basis(bspline.locate(s_b, nseg)[1], 1)
+    ca, va = point_rows(yarn_offset[yarn_a], s_a, ncp, closed)
+    cb, vb = point_rows(yarn_offset[yarn_b], s_b, ncp, closed)
+    da = point_rows(yarn_offset[yarn_a], s_a, ncp, closed, nu=1)[1]
+    db = point_rows(yarn_offset[yarn_b], s_b, ncp, closed, nu=1)[1]
     zero = np.zeros((len(ca), 4))
     w = np.concatenate([va, -vb], axis=1)                        # r
     ta = np.concatenate([da, zero], axis=1)                      # t_a
@@ -177,10 +178,10 @@ def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, nseg, X):
     return Contacts(np.asarray(yarn_a), cols, U, V, scale, rest)
 
 
-def fixed_points(yarn, s, yarn_offset, nseg, X, nu=0):
+def fixed_points(yarn, s, yarn_offset, ncp, closed, X, nu=0):
     """Fixed-point rows P_f(s) = x₀ (nu = 0), or clamped tangents
     P_f'(s) = X_f'(s) (nu = 1), with the right-hand side taken at X."""
-    cols, vals = point_rows(yarn_offset[yarn], s, nseg, nu)
+    cols, vals = point_rows(yarn_offset[yarn], s, ncp, closed, nu)
     rhs = np.einsum("na,nai->ni", vals, X[cols])
     n = len(s)
     return Holds(np.asarray(yarn), np.arange(0, 4 * n + 1, 4), cols.ravel(),
@@ -191,9 +192,9 @@ def build(fabric):
     """(Contacts, Holds) of a ``Fabric``: contact invariants at its rest X,
     the holds at its start state (``Fabric.start_points``)."""
     offset = np.arange(fabric.nyarn + 1) * fabric.ncp
-    nseg = fabric.ncp - 3
+    yarns = fabric.ncp, fabric.closed
     X, X0 = fabric.X.reshape(-1, 3), fabric.start_points().reshape(-1, 3)
     ya, sa, yb, sb = fabric.contacts
-    holds = Holds.concatenate([fixed_points(*fabric.fixed, offset, nseg, X0),
-                               fixed_points(*fabric.clamped, offset, nseg, X0, nu=1)])
-    return contacts(ya, sa, yb, sb, offset, nseg, X), holds
+    holds = Holds.concatenate([fixed_points(*fabric.fixed, offset, *yarns, X0),
+                               fixed_points(*fabric.clamped, offset, *yarns, X0, nu=1)])
+    return contacts(ya, sa, yb, sb, offset, *yarns, X), holds

@@ -39,6 +39,8 @@ class Fabric:
         start state puts them.
     bodies : rigid bodies the yarns keep out of (``colliders``).
     friction : Coulomb coefficient μ between the yarns and the bodies.
+    closed : every yarn a closed curve (a course knitted in the round): ncp
+        segments, control points read modulo ncp (``bspline``).
     """
 
     X: np.ndarray
@@ -53,6 +55,7 @@ class Fabric:
     start: tuple = field(default_factory=lambda: (np.eye(3), np.zeros(3)))
     bodies: tuple = ()
     friction: float = 0.0
+    closed: bool = False
 
     @property
     def nyarn(self):
@@ -62,6 +65,24 @@ class Fabric:
     def ncp(self):
         return self.X.shape[1]
 
+    @property
+    def nseg(self):
+        """Segments (elements) a yarn."""
+        return bspline.segments(self.ncp, self.closed)
+
+    def connectivity(self, yarn_start, yarn_end):
+        """Global control points (elements, 4) of the segments of yarns
+        [start, end), yarn after yarn (control point f · ncp + i)."""
+        first = np.arange(yarn_start, yarn_end)[:, None, None] * self.ncp
+        return (first + bspline.span(np.arange(self.nseg), self.ncp, self.closed)
+                ).reshape(-1, 4)
+
+    def open_splines(self, P):
+        """The same curves as open splines, for output and drawing: a closed
+        yarn's first three control points repeated at its end (nyarn, ncp + 3, 3)."""
+        P = np.asarray(P)
+        return np.concatenate([P, P[:, :3]], axis=1) if self.closed else P
+
     def load_vector(self, yarn_start, yarn_end):
         """Generalised forces of the point loads on yarns [start, end):
         F at P_f(s), s = k + u, adds b_a(u) F to control point k + a of yarn f.
@@ -69,8 +90,8 @@ class Fabric:
         Q = np.zeros((yarn_end - yarn_start, self.ncp, 3))
         yarn, s, F = self.loads
         mine = (yarn >= yarn_start) & (yarn < yarn_end)
-        k, u = bspline.locate(s[mine], self.ncp - 3)
-        idx = (yarn[mine] - yarn_start, k[:, None] + np.arange(4))
+        k, u = bspline.locate(s[mine], self.nseg, self.closed)
+        idx = (yarn[mine] - yarn_start, bspline.span(k, self.ncp, self.closed))
         np.add.at(Q, (idx[0][:, None], idx[1]),
                   bspline.basis(u)[..., None] * np.asarray(F)[mine][:, None])
         return Q.reshape(-1, 3)

@@ -80,10 +80,11 @@ class VolumeWeights:
         order = np.argsort(cols, axis=1)
         self.cols = np.take_along_axis(cols, order, 1)
         self.vals = np.take_along_axis(vals, order, 1)
-        self.patch = np.stack([bspline.locate(s1, volume.n1 - 3)[0],
+        around = bspline.segments(volume.n1, volume.periodic)
+        self.patch = np.stack([bspline.locate(s1, around, volume.periodic)[0],
                                bspline.locate(s2, volume.n2 - 3)[0]], axis=-1)
         self.volume = volume
-        self.npatch = (volume.n1 - 3, volume.n2 - 3)
+        self.npatch = (around, volume.n2 - 3)
 
     def patch_mask(self, patches):
         """Points whose patch (j1, j2) is in ``patches`` (an (n1−3, n2−3) bool
@@ -360,16 +361,22 @@ def stitch_mask(fabric, regions):
     """Control points of the stitches in ``regions`` [(c0, c1, r0, r1), …]
     (half-open stitch and course ranges): control point i of course f lies in
     stitch min(max(i − 1, 0) // 8, nc − 1), the stitch its parameter
-    s = i − 1 falls in."""
-    nc = max((fabric.ncp - 3) // SEGMENTS_PER_STITCH, 1)
-    stitch = np.minimum(np.maximum(np.arange(fabric.ncp) - 1, 0)
-                        // SEGMENTS_PER_STITCH, nc - 1)
+    s = i − 1 falls in ((i − 1) mod n_f // 8 on a closed course)."""
+    nc = stitches(fabric)
+    s = np.arange(fabric.ncp) - 1
+    stitch = (np.mod(s, fabric.ncp) if fabric.closed
+              else np.minimum(np.maximum(s, 0), fabric.nseg - 1)) // SEGMENTS_PER_STITCH
     course = np.arange(fabric.nyarn)
     mask = np.zeros((fabric.nyarn, fabric.ncp), bool)
     for c0, c1, r0, r1 in regions:
         mask |= (((course >= r0) & (course < r1))[:, None]
                  & ((stitch >= c0) & (stitch < c1))[None, :])
     return mask.ravel()
+
+
+def stitches(fabric):
+    """Stitches a course (one for a yarn shorter than a stitch)."""
+    return max(fabric.nseg // SEGMENTS_PER_STITCH, 1)
 
 
 def parse_regions(text, where, nc, nr):
@@ -405,7 +412,7 @@ def region_options(opts):
 def regions_from_options(opts, fabric):
     """The full regions of -knit_full_region and -knit_full_regions FILE."""
     one, path = region_options(opts)
-    nc = max((fabric.ncp - 3) // SEGMENTS_PER_STITCH, 1)
+    nc = stitches(fabric)
     regions = parse_regions(one, "-knit_full_region", nc, fabric.nyarn)
     if path:
         try:

@@ -85,11 +85,8 @@ class FullModel:
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled"):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
-        nseg = fabric.ncp - 3
         with EV_ASSEMBLY:
-            yarn_first = lay.yarn_offset[lay.yarn_start:lay.yarn_end]
-            self.conn = (yarn_first[:, None, None] + np.arange(nseg)[None, :, None]
-                         + np.arange(4)).reshape(-1, 4)
+            self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)
             Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
                                          material.rho, material.EA, material.EI,
@@ -158,12 +155,14 @@ class FullModel:
         return self.comm.tompi4py().allreduce(local, op=MPI.MAX)
 
     def gather_points(self, x):
-        """All control points (nyarn, ncp, 3) on rank 0 (None elsewhere)."""
+        """All control points on rank 0 (None elsewhere), as open splines
+        (``Fabric.open_splines``: closed yarns repeat three at their end)."""
         local = x.getArray(readonly=True)
         parts = self.comm.tompi4py().gather(local, root=0)
         if self.comm.rank:
             return None
-        return np.concatenate(parts).reshape(self.fabric.nyarn, self.fabric.ncp, 3)
+        f = self.fabric
+        return f.open_splines(np.concatenate(parts).reshape(f.nyarn, f.ncp, 3))
 
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):

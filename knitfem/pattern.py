@@ -15,6 +15,19 @@ n_f = 8 nc + 3 control points. Control point i sits at t_i = −π + (i − 1)Δ
 Δ = 2π/8; each harmonic of γ is divided by the junction symbol
 (4 + 2 cos ωΔ)/6 so that the spline interpolates γ at every segment junction.
 Physical lengths are the unit lengths times ``radius / r``.
+
+Knitted in the round (``shape="tube"``) every course closes on itself: the
+flat curve is wrapped around the y axis, x onto the angle θ = (x − t₀)/nc and
+z onto the radius, on a circle of nc units (a course's 2π nc around),
+
+    γ̃_f(t) = ((nc + z) sin θ,  y,  (nc + z) cos θ),   (x, y, z) = γ_f(t),
+
+and each yarn is a closed cubic B-spline of n_f = 8 nc control points, one
+a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``).
+The front of the knit (+z) faces outwards. We chose closed courses over
+the single helical yarn of a circular knitting machine: every course is the
+same ring (contacts computed once, translated), the tube's ends are level,
+and whole yarns still spread over the ranks.
 """
 
 from dataclasses import dataclass
@@ -24,11 +37,12 @@ from scipy.spatial import cKDTree
 
 from . import bspline
 
-__all__ = ["LoopShape", "Jersey", "min_yarn_distance"]
+__all__ = ["LoopShape", "Jersey", "SHAPES", "min_yarn_distance"]
 
 SEGMENTS_PER_STITCH = 8
 DT = 2 * np.pi / SEGMENTS_PER_STITCH
 T0 = -np.pi
+SHAPES = ("flat", "tube")
 
 
 @dataclass(frozen=True)
@@ -56,21 +70,30 @@ class Jersey:
     radius : float
         Yarn radius in metres; sets the scale ``radius / shape.r``.
     shape : LoopShape
+    knit : {"flat", "tube"}
+        A flat swatch of open courses, or a tube knitted in the round.
     """
 
-    def __init__(self, rows, cols, radius=5e-4, shape=LoopShape()):
+    def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat"):
+        if knit not in SHAPES:
+            raise ValueError(f"knit shape {knit!r}: use one of {', '.join(SHAPES)}")
         self.rows, self.cols = int(rows), int(cols)
-        self.radius, self.shape = float(radius), shape
+        self.radius, self.shape, self.knit = float(radius), shape, knit
+        self.closed = knit == "tube"
         self.scale = self.radius / shape.r
-        self.ncp = SEGMENTS_PER_STITCH * self.cols + 3
-        self.nseg = self.ncp - 3
+        self.nseg = SEGMENTS_PER_STITCH * self.cols
+        self.ncp = self.nseg if self.closed else self.nseg + 3
 
     def parameter(self, t):
         """Spline parameter s of the curve parameter t."""
         return (np.asarray(t) - T0) / DT
 
     def control_points(self, f):
-        """Rest control points (n_f, 3) of yarn f, interpolating γ_f at junctions."""
+        """Rest control points (n_f, 3) of yarn f, interpolating γ_f (γ̃_f on a
+        tube) at the junctions."""
+        if self.closed:
+            t = T0 + (np.arange(self.ncp) - 1) * DT
+            return bspline.periodic_interpolant(self.centreline(t, f))
         s = self.shape
         t = T0 + (np.arange(self.ncp) - 1) * DT
         sym1 = bspline.junction_symbol(DT)
@@ -88,11 +111,14 @@ class Jersey:
         return np.concatenate([self.control_points(f) for f in range(self.rows)])
 
     def centreline(self, t, f):
-        """The closed-form jersey curve γ_f(t) in metres, (len(t), 3)."""
+        """The closed-form jersey curve γ_f(t) (γ̃_f on a tube) in metres,
+        (len(t), 3)."""
         s, t = self.shape, np.asarray(t, dtype=float)
-        g = np.stack([t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w,
-                      s.d * np.cos(2 * t)], axis=-1)
-        return self.scale * g
+        x, y, z = t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w, s.d * np.cos(2 * t)
+        if self.closed:
+            theta = (x - T0) / self.cols
+            x, z = (self.cols + z) * np.sin(theta), (self.cols + z) * np.cos(theta)
+        return self.scale * np.stack([x, y, z], axis=-1)
 
     def contacts(self):
         """Interlock contacts between courses k and k + 1.
@@ -113,7 +139,8 @@ class Jersey:
         ta = (2 * np.pi * j[:, None] + np.array([-0.99, 0.99])).ravel()
         tb = (2 * np.pi * j[:, None] + np.array([-2.16, 2.16])).ravel()
         Pa, Pb = self.control_points(0), self.control_points(1)
-        sa, sb = closest_approach(Pa, Pb, self.parameter(ta), self.parameter(tb))
+        sa, sb = closest_approach(Pa, Pb, self.parameter(ta), self.parameter(tb),
+                                  closed=self.closed)
         k = np.repeat(np.arange(self.rows - 1), sa.size)
         return k, np.tile(sa, self.rows - 1), np.tile(sb, self.rows - 1)
 
@@ -122,21 +149,27 @@ class Jersey:
         return self.parameter(2 * np.pi * np.arange(self.cols))
 
 
-def closest_approach(Pa, Pb, sa, sb, iterations=30):
-    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised."""
-    na, nb = len(Pa) - 3, len(Pb) - 3
+def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
+    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised
+    (s read modulo the segments on closed curves, else kept in them)."""
+    na, nb = bspline.segments(len(Pa), closed), bspline.segments(len(Pb), closed)
+
+    def at(P, s, nu):
+        return bspline.curve_points(P, s, nu, closed)
+
     for _ in range(iterations):
-        D = bspline.curve_points(Pa, sa) - bspline.curve_points(Pb, sb)
-        A1, A2 = bspline.curve_points(Pa, sa, 1), bspline.curve_points(Pa, sa, 2)
-        B1, B2 = bspline.curve_points(Pb, sb, 1), bspline.curve_points(Pb, sb, 2)
+        D = at(Pa, sa, 0) - at(Pb, sb, 0)
+        A1, A2 = at(Pa, sa, 1), at(Pa, sa, 2)
+        B1, B2 = at(Pb, sb, 1), at(Pb, sb, 2)
         g = np.stack([np.sum(D * A1, -1), -np.sum(D * B1, -1)], -1)
         H = np.empty(g.shape + (2,))
         H[:, 0, 0] = np.sum(A1 * A1 + D * A2, -1)
         H[:, 1, 1] = np.sum(B1 * B1 - D * B2, -1)
         H[:, 0, 1] = H[:, 1, 0] = -np.sum(A1 * B1, -1)
         step = np.linalg.solve(H, g[..., None])[..., 0]
-        sa = np.clip(sa - step[:, 0], 0, na)
-        sb = np.clip(sb - step[:, 1], 0, nb)
+        sa, sb = sa - step[:, 0], sb - step[:, 1]
+        sa, sb = (np.mod(sa, na), np.mod(sb, nb)) if closed else \
+            (np.clip(sa, 0, na), np.clip(sb, 0, nb))
         if np.abs(step).max() < 1e-13:
             break
     return sa, sb
@@ -176,7 +209,7 @@ def jersey_fabric(jersey, hold=None):
 
     X = np.stack([jersey.control_points(f) for f in range(jersey.rows)])
     k, sa, sb = jersey.contacts()
-    fab = Fabric(X, jersey.radius, contacts=(k, sa, k + 1, sb))
+    fab = Fabric(X, jersey.radius, contacts=(k, sa, k + 1, sb), closed=jersey.closed)
     top = jersey.rows - 1
     heads = jersey.heads(top)
     if hold == "top":

@@ -203,8 +203,9 @@ def embedding_from_options(opts, comm, fabric, layout=None):
         except (OSError, ValueError) as err:
             raise KnitError(f"-knit_volume {path}: {err}") from None
     else:
-        volume = BoundingVolume.around(fabric.X.reshape(-1, 3), *lod,
-                                       margin=fabric.radius, frame=fabric.frame)
+        around = BoundingVolume.tube if fabric.closed else BoundingVolume.around
+        volume = around(fabric.X.reshape(-1, 3), *lod, margin=fabric.radius,
+                        frame=fabric.frame)
     layout = layout or YarnLayout(comm, fabric.nyarn, fabric.ncp)
     return Embedding(comm, layout, fabric, volume)
 

@@ -81,7 +81,8 @@ def tilted(fabric, degrees):
     c, s = np.cos(theta), np.sin(theta)
     R = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
     yarn, s_fixed = fabric.fixed
-    held = np.stack([bspline.curve_points(fabric.X[f], np.atleast_1d(t))[0]
+    held = np.stack([bspline.curve_points(fabric.X[f], np.atleast_1d(t),
+                                          closed=fabric.closed)[0]
                      for f, t in zip(yarn, s_fixed)])
     return fabric.rotated(R, held.mean(axis=0))
 

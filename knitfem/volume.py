@@ -20,6 +20,12 @@ the column of Γ̃. The net is stored as an array (2, n₂, n₁, 3) indexed
 [k3, k2, k1, :], so that its C-order flattening ``flat`` (2 n₁ n₂, 3) is in
 that numbering.
 
+A volume periodic in s₁ (``periodic=True``) closes on itself around a tube
+knitted in the round: its n₁ control points around make n₁ patches, patch
+j1 blends k1 = (j1 + a) mod n₁, s₁ ∈ [0, n₁) is read modulo n₁
+(``bspline``'s closed curves); S₁ is the inner surface and S₂ the outer
+(``BoundingVolume.tube``).
+
 Stitches fitting. A yarn control point keeps constant parameters (s₁, s₂, w₃)
 in V, so ε = Γ̃ q is linear in the volume's control points q: the row of Γ̃
 of a point holds the 4 · 4 · 2 = 32 weights (1 − ω₃) b_a(ω₁) b_b(ω₂) and
@@ -45,6 +51,7 @@ DEFAULT_AMOUNTS = {"flexion": 90.0, "traction": 1.2, "shear": 30.0, "torsion": 9
 # on a bad file); meshio is imported when a volume file is read or written
 _READERS = {".vtu": "vtu", ".xdmf": "xdmf", ".vtk": "vtk"}
 _LATTICE = "lattice_index"
+_PERIODIC = "periodic"
 
 
 class BoundingVolume:
@@ -54,6 +61,8 @@ class BoundingVolume:
     ----------
     net : array_like, shape (2, n2, n1, 3)
         Control points q[k3, k2, k1]; n1, n2 ≥ 4 (one patch at least). Copied.
+    periodic : bool
+        Closed around s₁ (a tube), n1 patches around.
 
     Attributes
     ----------
@@ -62,9 +71,10 @@ class BoundingVolume:
         A view of ``net``: row k = k1 + n1 (k2 + n2 k3) is control point k.
     n1, n2 : int
         Control points along x (s₁) and along y (s₂).
+    periodic : bool
     """
 
-    def __init__(self, net):
+    def __init__(self, net, periodic=False):
         net = np.array(net, dtype=float)
         if net.ndim != 4 or net.shape[0] != 2 or net.shape[3] != 3:
             raise ValueError(
@@ -76,17 +86,22 @@ class BoundingVolume:
         if not np.all(np.isfinite(net)):
             raise ValueError("control net has non-finite coordinates")
         self.net, self.n1, self.n2 = net, n1, n2
+        self.periodic = bool(periodic)
         self.flat = net.reshape(-1, 3)
 
+    def like(self, q):
+        """A volume of this one's kind (size, periodicity) on control points q."""
+        return BoundingVolume.from_flat(q, self.n1, self.n2, self.periodic)
+
     @classmethod
-    def from_flat(cls, q, n1, n2):
+    def from_flat(cls, q, n1, n2, periodic=False):
         """Volume from control points q (2 n1 n2, 3) in the DOF numbering."""
         q = np.asarray(q, dtype=float)
         if q.shape != (2 * n1 * n2, 3):
             raise ValueError(
                 f"control points have shape {q.shape}, expected "
                 f"({2 * n1 * n2}, 3) for a {n1}×{n2}×2 net")
-        return cls(q.reshape(2, n2, n1, 3))
+        return cls(q.reshape(2, n2, n1, 3), periodic)
 
     @classmethod
     def around(cls, points, n1=5, n2=5, margin=0.0, frame=None):
@@ -119,6 +134,38 @@ class BoundingVolume:
         Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
         return cls(np.stack([X, Y, Z], axis=-1) @ R.T)
 
+    @classmethod
+    def tube(cls, points, n1=8, n2=5, margin=0.0, frame=None):
+        """Coaxial volume enclosing ``points`` (N, 3) of a tube, periodic
+        around it: S₁ a cylinder inside them, S₂ one outside.
+
+        In the coordinates of ``frame`` (as in `around`) the axis is parallel
+        to y through the points' mean (x, z); with ρ the distance from it,
+        the cylinders have radii ρ_min − m and ρ_max + m and span [y_min − m,
+        y_max + m], equally spaced along y as in `around`. Around, control
+        point k1 sits at the angle φ = 2π k1/n1 and the radius divided by
+        σ = (4 + 2 cos(2π/n1))/6 (``bspline.junction_symbol``), so that each
+        surface passes through its circle at every junction s₁ ∈ ℤ.
+        """
+        R = np.eye(3) if frame is None else np.asarray(frame, dtype=float)
+        pts = np.asarray(points, dtype=float).reshape(-1, 3) @ R
+        if len(pts) == 0 or margin < 0 or n1 < 4 or n2 < 4:
+            raise ValueError("tube() needs points, margin >= 0 and n1, n2 >= 4")
+        c = pts[:, [0, 2]].mean(axis=0)
+        rho = np.linalg.norm(pts[:, [0, 2]] - c, axis=1)
+        radii = np.array([rho.min() - margin, rho.max() + margin])
+        if not radii[0] > 0:
+            raise ValueError("the points reach the tube's axis: not a tube")
+        lo, hi = pts[:, 1].min() - margin, pts[:, 1].max() + margin
+        y = lo + (np.arange(n2) - 1) * (hi - lo) / (n2 - 3)
+        phi = 2 * np.pi * np.arange(n1) / n1
+        r = radii / bspline.junction_symbol(2 * np.pi / n1)
+        net = np.empty((2, n2, n1, 3))
+        net[..., 0] = c[0] + r[:, None, None] * np.sin(phi)
+        net[..., 1] = y[:, None]
+        net[..., 2] = c[1] + r[:, None, None] * np.cos(phi)
+        return cls(net @ R.T, periodic=True)
+
     @property
     def size(self):
         """Number of control points n = 2 n1 n2 (columns of Γ̃)."""
@@ -126,15 +173,17 @@ class BoundingVolume:
 
     @property
     def domain(self):
-        """Upper bounds (n1 − 3, n2 − 3, 1) of (s₁, s₂, w₃); lower bounds 0."""
-        return np.array([self.n1 - 3, self.n2 - 3, 1.0])
+        """Upper bounds (n1 − 3, n2 − 3, 1) of (s₁, s₂, w₃), n1 − 3 → n1 if
+        periodic; lower bounds 0."""
+        return np.array([bspline.segments(self.n1, self.periodic), self.n2 - 3, 1.0])
 
     def index(self, k1, k2, k3):
         """DOF number k = k1 + n1 (k2 + n2 k3) of control point (k1, k2, k3)."""
         return np.asarray(k1) + self.n1 * (np.asarray(k2) + self.n2 * np.asarray(k3))
 
     def __repr__(self):
-        return f"BoundingVolume({self.n1}×{self.n2}×2 control points)"
+        return (f"BoundingVolume({self.n1}×{self.n2}×2 control points"
+                f"{', periodic around' if self.periodic else ''})")
 
     # -- evaluation -------------------------------------------------------
 
@@ -142,11 +191,13 @@ class BoundingVolume:
         """Columns and weights of d^nu P / d(s₁, s₂, w₃)^nu, each (..., 32).
 
         Weights (..., k3, b, a) = W_k3(w₃) b_b(ω₂) b_a(ω₁), W = (1 − w₃, w₃),
-        at columns (j1 + a) + n1 ((j2 + b) + n2 k3).
+        at columns (j1 + a) + n1 ((j2 + b) + n2 k3), j1 + a modulo n1 if
+        periodic.
         """
         s1, s2, w3 = np.broadcast_arrays(*(np.asarray(v, dtype=float)
                                            for v in (s1, s2, w3)))
-        j1, u1 = bspline.locate(s1, self.n1 - 3)
+        j1, u1 = bspline.locate(s1, bspline.segments(self.n1, self.periodic),
+                                self.periodic)
         j2, u2 = bspline.locate(s2, self.n2 - 3)
         B1 = bspline.basis(u1, nu[0])
         B2 = bspline.basis(u2, nu[1])
@@ -156,8 +207,8 @@ class BoundingVolume:
             W = np.stack([-np.ones_like(w3), np.ones_like(w3)], axis=-1)
         vals = W[..., :, None, None] * B2[..., None, :, None] * B1[..., None, None, :]
         a = np.arange(4)
-        cols = (j1[..., None, None, None] + a
-                + self.n1 * (j2[..., None, None, None] + a[:, None]
+        k1 = bspline.span(j1, self.n1, self.periodic)[..., None, None, :]
+        cols = (k1 + self.n1 * (j2[..., None, None, None] + a[:, None]
                              + self.n2 * np.arange(2)[:, None, None]))
         shape = s1.shape + (32,)
         return cols.reshape(shape), vals.reshape(shape)
@@ -198,7 +249,8 @@ class BoundingVolume:
 
     def _initial_guess(self, x, per_patch=3, chunk=1 << 22):
         """Nearest point of a coarse parameter grid, for each x (N, 3)."""
-        g1 = np.linspace(0, self.n1 - 3, per_patch * (self.n1 - 3) + 1)
+        n = bspline.segments(self.n1, self.periodic)
+        g1 = np.linspace(0, n, per_patch * n + 1)[:-1 if self.periodic else None]
         g2 = np.linspace(0, self.n2 - 3, per_patch * (self.n2 - 3) + 1)
         g3 = np.linspace(0, 1, 3)
         G = np.stack(np.meshgrid(g1, g2, g3, indexing="ij"), -1).reshape(-1, 3)
@@ -215,7 +267,8 @@ class BoundingVolume:
         Solves J Δ = P(t) − x, t ← t − Δ for all points at once, from the
         nearest node of a coarse parameter grid, until |Δ|_∞ ≤ tol (parameter
         units). Iterates may leave the domain by up to one patch (the
-        polynomials are extended); the result is clipped into the domain.
+        polynomials are extended); the result is clipped into the domain
+        (s₁ of a periodic volume is taken modulo n1 instead).
 
         Parameters
         ----------
@@ -254,10 +307,11 @@ class BoundingVolume:
             regular = np.abs(np.linalg.det(J)) > 1e-14 * scale
             J[~regular] = np.eye(3)
             step = np.linalg.solve(J, r[..., None])[..., 0]
-            t[active] = np.clip(ta - step, -1.0, hi + 1.0)
+            t[active] = self._wrap(np.clip(ta - step, -1.0, hi + 1.0))
             conv = regular & (np.abs(step).max(axis=-1) <= tol)
             done[active[conv]] = True
             active = active[regular & ~conv]
+        t = self._wrap(t)
         outside = np.any((t < -slack) | (t > hi + slack), axis=-1)
         for bad, what in ((outside, "lie outside the bounding volume"),
                           (~done, "were not embedded: Newton did not converge "
@@ -271,6 +325,12 @@ class BoundingVolume:
                     f"[0, {hi[0]:g}]×[0, {hi[1]:g}]×[0, 1])")
         t = np.clip(t, 0.0, hi)
         return tuple(t[:, c].reshape(shape) for c in range(3))
+
+    def _wrap(self, t):
+        """Parameters (N, 3) with s₁ taken modulo n1 if periodic."""
+        if self.periodic:
+            t[:, 0] = np.mod(t[:, 0], self.n1)
+        return t
 
     # -- imposed deformations (paper, section 4) --------------------------
 
@@ -339,15 +399,18 @@ class BoundingVolume:
                     f"{abs(R):.4g} is below the half thickness")
             q[:, 0] = c[0] + rho * np.sin(xi / R)
             q[:, 2] = c[2] + R - rho * np.cos(xi / R)
-        return BoundingVolume(q.reshape(self.net.shape))
+        return self.like(q)
 
     # -- files ------------------------------------------------------------
 
     def _hexahedra(self):
-        """VTK hexahedra of the control lattice, ((n1 − 1)(n2 − 1), 8)."""
-        k2, k1 = np.indices((self.n2 - 1, self.n1 - 1)).reshape(2, -1)
-        quad = np.stack([self.index(k1, k2, 0), self.index(k1 + 1, k2, 0),
-                         self.index(k1 + 1, k2 + 1, 0), self.index(k1, k2 + 1, 0)],
+        """VTK hexahedra of the control lattice, ((n1 − 1)(n2 − 1), 8), closed
+        around (n1 (n2 − 1)) if periodic."""
+        around = self.n1 if self.periodic else self.n1 - 1
+        k2, k1 = np.indices((self.n2 - 1, around)).reshape(2, -1)
+        k1n = (k1 + 1) % self.n1
+        quad = np.stack([self.index(k1, k2, 0), self.index(k1n, k2, 0),
+                         self.index(k1n, k2 + 1, 0), self.index(k1, k2 + 1, 0)],
                         axis=-1)
         return np.concatenate([quad, quad + self.n1 * self.n2], axis=-1)
 
@@ -361,7 +424,8 @@ class BoundingVolume:
 
         Points are the control points in DOF order, cells the hexahedra of
         the lattice, and point data ``lattice_index`` holds (k1, k2, k3),
-        from which `load` recovers n1 and n2.
+        from which `load` recovers n1 and n2, and ``periodic`` (1 on every
+        point of a volume closed around).
         """
         path = Path(path)
         if path.suffix not in _READERS:
@@ -370,7 +434,9 @@ class BoundingVolume:
         import meshio
 
         meshio.Mesh(self.flat, [("hexahedron", self._hexahedra())],
-                    point_data={_LATTICE: self._lattice()}).write(path)
+                    point_data={_LATTICE: self._lattice(),
+                                _PERIODIC: np.full(self.size, int(self.periodic))}
+                    ).write(path)
 
     @classmethod
     def load(cls, path):
@@ -402,7 +468,8 @@ class BoundingVolume:
         if len(pts) != 2 * n1 * n2:
             raise ValueError(f"{path}: {len(pts)} points, expected 2·{n1}·{n2} = "
                              f"{2 * n1 * n2} for a {n1}×{n2}×2 net")
-        volume = cls.from_flat(pts, n1, n2)
+        periodic = np.asarray(mesh.point_data.get(_PERIODIC, [0]))
+        volume = cls.from_flat(pts, n1, n2, bool(periodic.ravel()[0]))
         if not np.array_equal(lattice, volume._lattice()):
             raise ValueError(f"{path}: points are not in the numbering "
                              "k1 + n1 (k2 + n2 k3)")
