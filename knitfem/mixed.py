@@ -362,10 +362,9 @@ def stitch_mask(fabric, regions):
     (half-open stitch and course ranges): control point i of course f lies in
     stitch min(max(i − 1, 0) // 8, nc − 1), the stitch its parameter
     s = i − 1 falls in ((i − 1) mod n_f // 8 on a closed course)."""
-    nc = stitches(fabric)
     s = np.arange(fabric.ncp) - 1
-    stitch = (np.mod(s, fabric.ncp) if fabric.closed
-              else np.minimum(np.maximum(s, 0), fabric.nseg - 1)) // SEGMENTS_PER_STITCH
+    s = np.mod(s, fabric.ncp) if fabric.closed else np.maximum(s, 0)
+    stitch = np.minimum(s // SEGMENTS_PER_STITCH, stitches(fabric) - 1)
     course = np.arange(fabric.nyarn)
     mask = np.zeros((fabric.nyarn, fabric.ncp), bool)
     for c0, c1, r0, r1 in regions:

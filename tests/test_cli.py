@@ -224,6 +224,21 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
             assert "unknown" not in p.stderr and "warning" not in p.stderr, line
 
 
+def test_readme_garment_runs_are_the_benchmarks_commands():
+    """The README's tube, sleeve and drape runs take minutes: each is one of
+    ``benchmarks/garments.py``'s COMMANDS, which that study runs as written."""
+    import ast
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    tree = ast.parse(open(os.path.join(root, "benchmarks", "garments.py")).read())
+    commands = next(ast.literal_eval(node.value) for node in tree.body
+                    if isinstance(node, ast.Assign) and node.targets[0].id == "COMMANDS")
+    garments = [ln for ln in readme_commands() if ln.startswith("knitfem run")
+                and ("-knit_shape tube" in ln or "-knit_scene drape" in ln)]
+    assert len(garments) >= 3
+    assert set(garments) <= set(commands.values())
+
+
 def test_symplectic_step_above_the_stable_step_is_a_usage_error(tmp_path):
     p = knitfem("run", "-knit_integrator", "symplectic", "-knit_dt", "1e-3",
                 "-o", str(tmp_path))

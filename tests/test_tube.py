@@ -12,7 +12,7 @@ from petsc4py import PETSc
 
 from helpers import COMM, gather
 from knitfem import bspline
-from knitfem.kernels import KINDS, yarn_kernels
+from knitfem.kernels import KINDS
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric, min_yarn_distance
 from knitfem.reduced import Embedding, ReducedModel
