@@ -44,8 +44,7 @@ COMMANDS = {
               "capsule:0,0.0115,-0.03,0,0.0115,0.03,0.007 -knit_friction 0.3 "
               "-knit_model reduced -knit_t_end 0.5 -knit_snapshots 0,0.5 -o out/sleeve",
     "drape": "knitfem run -knit_scene drape -knit_rows 12 -knit_cols 12 "
-             "-knit_friction 0.5 -knit_model reduced -knit_t_end 1 "
-             "-knit_snapshots 0.3,1 -o out/drape",
+             "-knit_model reduced -knit_t_end 1 -knit_snapshots 0.3,1 -o out/drape",
 }
 
 

@@ -144,6 +144,12 @@ scenes with analytic references (free fall, catenary, cantilever) are in
 vacuum."""
 
 
+FRICTION = {"drape": 0.5}
+"""Default Coulomb μ between yarns and bodies by scene: a middling value
+for fabric on a body; without friction the swatch balanced on the sphere
+slides off it."""
+
+
 def material_from_options(opts, scene=None):
     """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping
     (default: the scene's air drag)."""
@@ -325,9 +331,9 @@ def run(comm):
     tilt, hold, turn = pose_from_options(opts)
     pull = pull_from_options(opts, jersey)
     bodies = colliders_from_options(opts)
-    friction = opts.getReal("friction", 0.0, "Coulomb friction coefficient between "
-                            "the yarns and the bodies (implicit integrators)",
-                            nonnegative=True)
+    friction = opts.getReal("friction", FRICTION.get(scene, 0.0), "Coulomb friction "
+                            "coefficient between the yarns and the bodies (implicit "
+                            "integrators; drape: 0.5, others 0)", nonnegative=True)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     make_integrator = integrator_from_options(opts)
