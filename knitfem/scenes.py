@@ -148,6 +148,10 @@ def scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold):
     if scene == "freefall":
         return jersey_fabric(jersey)
     if scene == "drape":
+        if jersey.closed:
+            raise ValueError("-knit_scene drape lays a flat swatch on a sphere: use "
+                             "-knit_shape flat (a tube: the hanging or freefall scene "
+                             "with -knit_collider)")
         return drape(jersey)
     if scene == "catenary":
         X = arc_yarn(length, span, nseg)[None]

@@ -224,6 +224,15 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
             assert "unknown" not in p.stderr and "warning" not in p.stderr, line
 
 
+@pytest.mark.parametrize("args,said", [
+    (("-knit_scene", "drape", "-knit_shape", "tube"), "-knit_shape flat"),
+    (("-knit_shape", "tube", "-knit_cols", "2"), "at least 3 stitches around"),
+    (("-knit_shape", "sock"), "-knit_shape")])
+def test_a_tube_where_it_cannot_be_is_a_usage_error(tmp_path, args, said):
+    p = knitfem("run", *args, "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and said in p.stderr
+
+
 def test_readme_garment_runs_are_the_benchmarks_commands():
     """The README's tube, sleeve and drape runs take minutes: each is one of
     ``benchmarks/garments.py``'s COMMANDS, which that study runs as written."""
