@@ -148,7 +148,7 @@ def sampling_options(opts):
                           "reduced model's yarn forces: a trained weighted sample "
                           "of the yarn elements (ECSW), two stitches a volume patch "
                           "weighted by what they stand for, or every element")
-    tol = opts.getReal("sampling_tol", 1e-2, "relative force error the sampled "
+    tol = opts.getReal("sampling_tol", 2e-3, "relative force error the sampled "
                        "set is trained to", positive=True)
     return kind, tol
 
@@ -240,8 +240,10 @@ class EmbeddedModel:
         return out
 
     def begin_step(self, q):
-        """A step starts from q: the full model's lagged friction at Γ q."""
-        self.full.begin_step(self.full_state(q, self.eps))
+        """A step starts from q: the full model's lagged friction at Γ q (ε
+        is formed only when there are bodies)."""
+        if self.full.barrier is not None:
+            self.full.begin_step(self.full_state(q, self.eps))
 
     def yarn_move(self, dq):
         """max |Γ δq| for the local part ``dq`` (array) of an update δq: how far
