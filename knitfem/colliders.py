@@ -307,6 +307,21 @@ class Barrier:
             blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
             np.add.at(values, slot[e], blocks)
 
+    def swept_depth(self, x0, x1, resolution=0.5):
+        """The deepest δ along the straight paths of the quadrature points
+        from x0 to x1 (local; +inf without elements), each path sampled
+        every ``resolution`` × r at least: a step that carried a yarn point
+        through a body shows a depth there even when it ends outside."""
+        p0, p1 = self.el.points(x0), self.el.points(x1)
+        reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
+        m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
+        deepest = np.inf
+        for tau in np.arange(1, m + 1) / m:
+            pts = (p0 + tau * (p1 - p0)).reshape(-1, 3)
+            phi = np.min([body.distance(pts)[0] for body in self.bodies], axis=0)
+            deepest = min(deepest, float(phi.min(initial=np.inf)) - self.radius)
+        return deepest
+
     def min_distance(self, x):
         """Smallest δ (local; +inf without elements)."""
         delta = self.surface_distance(x)[0]

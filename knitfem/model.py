@@ -192,6 +192,19 @@ class FullModel:
         d = self.barrier.min_distance(self.yarn_points(x)) if self.barrier else np.inf
         return self.comm.tompi4py().allreduce(d, op=MPI.MIN)
 
+    def tunnelled(self, x0, x1):
+        """Why the step from x0 to x1 must be refused, or None: a yarn point
+        whose straight path went deeper than one yarn radius into a body
+        (a resting knit sinks ~1e-3 r into the barrier's gap, so only a
+        step that jumped the barrier goes there; collective)."""
+        if self.barrier is None:
+            return None
+        local = self.barrier.swept_depth(self.yarn_points(x0), self.yarn_points(x1))
+        depth = self.comm.tompi4py().allreduce(local, op=MPI.MIN)
+        if depth >= -self.fabric.radius:
+            return None
+        return f"a yarn point went {-depth / self.fabric.radius:.2g} r into a body"
+
     def forces(self, x, v, Q):
         """Q = −∂E/∂ε + Q_g − c_d M ε̇ (collective)."""
         with EV_FORCES:

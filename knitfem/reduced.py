@@ -239,6 +239,13 @@ class EmbeddedModel:
         self.Gamma.mult(q, out)
         return out
 
+    def tunnelled(self, q0, q1):
+        """The full model's verdict on the step from Γq0 to Γq1 (collective)."""
+        if self.full.barrier is None:
+            return None
+        return self.full.tunnelled(self.full_state(q0, self.eps),
+                                   self.full_state(q1, self.deps))
+
     def begin_step(self, q):
         """A step starts from q: the full model's lagged friction at Γ q (ε
         is formed only when there are bodies)."""

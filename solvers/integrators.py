@@ -370,6 +370,9 @@ class NewtonStepper:
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
                                   f"h = {h:.3g} s)")
         self._unpack(self.z)
+        crossed = s.tunnelled(self.xn, self.xe)       # a step through a body
+        if crossed:
+            raise SimulationError(f"{crossed}, h = {h:.3g} s")
 
     def _commit(self, x, v, h):
         self.accepted(h)
