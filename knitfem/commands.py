@@ -498,7 +498,9 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
         io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
                              system.fabric.radius)
         io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
-                title=f"{scene}, static equilibrium ({system.kind} model)")
+                title=f"{scene}, static equilibrium ({system.kind} model)",
+                view=VIEWS[scene] if system.fabric.bodies else "front",
+                bodies=system.fabric.bodies)
     PETSc.Sys.Print(f"static equilibrium in {its} Newton iterations; tip "
                     f"{np.round(rec['tip'], 6).tolist()}, lowest point dropped "
                     f"{rec['drop']:.4g} m")

@@ -176,6 +176,13 @@ class StaticSolver:
                     f"({reason_name(self.snes)} after "
                     f"{self.snes.getIterationNumber()} iterations, |F| = "
                     f"{self.snes.getFunctionNorm():.3e}, shift σ = {self.sigma:.3g})")
+            fnorm, load = self.snes.getFunctionNorm(), self.load * self.system.Qg.norm()
+            if fnorm > 1e-6 * load:        # small updates far from any equilibrium
+                raise SimulationError(
+                    f"static Newton stopped at load {self.load:.3g} with |F| = "
+                    f"{fnorm:.3e} N, above 1e-6 of the load's {load:.3e} N: there "
+                    "is no equilibrium near this state (a free knit, or one that "
+                    "can slide off a body, has none; hold it, or run the dynamics)")
         self._unpack(self.z)
         self.x.copy(x)
         return its

@@ -14,6 +14,7 @@ from scipy.optimize import brentq
 from helpers import COMM, gather, jersey, run
 from knitfem import bspline
 from knitfem.model import FullModel, Material
+from knitfem.pattern import Jersey
 from knitfem.scenes import make_fabric
 from solvers.integrators import BackwardEuler
 from solvers.statics import StaticSolver
@@ -176,3 +177,31 @@ def test_failed_linear_solve_is_named():
     finally:
         for k in given:
             opts.delValue(k)
+
+
+def test_knit_resting_on_a_body_is_in_equilibrium_against_it():
+    """A 4 x 4 swatch held by its top course, started lifted 30° out, with a
+    sphere behind where it would hang: the static solve ends pressed on the
+    sphere (pushed out to +z, no yarn surface inside) at |F| ~ round-off."""
+    from knitfem.colliders import Sphere
+
+    fab = make_fabric("hanging", jersey=Jersey(4, 4), tilt=30.0)
+    X = fab.X.reshape(-1, 3)
+    centre = np.array([X[:, 0].mean(), X[:, 1].mean(), -0.006])
+    fab.bodies = (Sphere(centre, 0.0065),)            # its top 0.5 mm in front
+    model, P, solver, norms = static(fab, Material())
+    x = model.rest_state()
+    x.getArray()[:] = P.ravel()
+    assert model.min_collider_distance(x) > 0
+    assert P[..., 2].mean() > 5e-4
+    assert norms[-1][0] < 1e-7 * model.Qg.norm()
+
+
+def test_a_knit_with_no_equilibrium_is_said_to_have_none():
+    """A swatch on a sphere without friction slides off: the static solve
+    stops with |F| far above the load and says there is no equilibrium."""
+    from solvers.integrators import SimulationError
+
+    model = FullModel(SELF, make_fabric("drape", jersey=Jersey(6, 6)), Material())
+    with pytest.raises(SimulationError, match="no equilibrium near this state"):
+        StaticSolver(model).solve(model.start_state())
