@@ -25,8 +25,9 @@ usage: knitfem <command> [-knit_... options] [PETSc options]
 commands (each one's options: knitfem <command> -help)
   dofs      the unknowns table (paper, Figure 9), counted from assembled objects
               knitfem dofs -knit_rows 15 -knit_cols 30 -knit_lod 5,5
-  pattern   write a jersey's centrelines (VTU) and a PNG picture
+  pattern   write a jersey's (or a tube's) centrelines (VTU) and a PNG picture
               knitfem pattern -knit_rows 7 -knit_cols 7 -o out/pattern
+              knitfem pattern -knit_shape tube -knit_rows 10 -knit_cols 16 -o out/tube
   run       simulate a scene with the full or reduced model, or its statics
               knitfem run -knit_scene hanging -knit_model reduced -o out/hanging
   deform    impose a deformation on the bounding volume and rebuild the yarns

@@ -111,7 +111,7 @@ def dofs(comm):
 
 
 def pattern(comm):
-    """Write a jersey's centrelines (VTU) and a PNG picture."""
+    """Write a jersey's (or a tube's) centrelines (VTU) and a PNG picture."""
     from . import io
 
     opts = KnitOptions()
