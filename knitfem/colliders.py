@@ -61,6 +61,10 @@ class Sphere:
     R: float
     bounded = True                  # pictures keep it in view (a plane: not)
 
+    def phi(self, x):
+        """φ (n,) at points x (n, 3), without its derivatives."""
+        return np.linalg.norm(x - self.centre, axis=-1) - self.R
+
     def distance(self, x):
         """(φ (n,), n (n, 3), ∇²φ (n, 3, 3)) at points x (n, 3)."""
         n, r = _unit(x - self.centre)
@@ -83,10 +87,18 @@ class Capsule:
     R: float
     bounded = True
 
-    def distance(self, x):
+    def _nearest(self, x):
+        """(axis, |axis|², parameter t of the closest point of the segment)."""
         axis = self.b - self.a
         L2 = axis @ axis
-        t = np.clip((x - self.a) @ axis / L2, 0.0, 1.0)
+        return axis, L2, np.clip((x - self.a) @ axis / L2, 0.0, 1.0)
+
+    def phi(self, x):
+        axis, _, t = self._nearest(x)
+        return np.linalg.norm(x - (self.a + t[:, None] * axis), axis=-1) - self.R
+
+    def distance(self, x):
+        axis, L2, t = self._nearest(x)
         n, r = _unit(x - (self.a + t[:, None] * axis))
         u = axis / np.sqrt(L2)
         inside = (t > 0) & (t < 1)
@@ -112,6 +124,9 @@ class Plane:
     point: np.ndarray
     normal: np.ndarray
     bounded = False
+
+    def phi(self, x):
+        return (x - self.point) @ (self.normal / np.linalg.norm(self.normal))
 
     def distance(self, x):
         n = self.normal / np.linalg.norm(self.normal)
@@ -207,6 +222,17 @@ class Barrier:
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged = None
+        from scipy import sparse
+
+        ne, nq = elements.ne, len(elements.B)           # x_eq = Σ_a b_a(u_q) p_{e,a}
+        self.sampler = sparse.csr_matrix(
+            (np.broadcast_to(elements.B, (ne, nq, 4)).ravel(),
+             (np.repeat(np.arange(ne * nq), 4), np.repeat(elements.conn, nq, axis=0).ravel())),
+            shape=(ne * nq, elements.ncp))
+
+    def points(self, x):
+        """The quadrature points x_eq (ne, nq, 3) of the control points x."""
+        return (self.sampler @ np.asarray(x)).reshape(self.el.ne, -1, 3)
 
     def lag(self, x):
         """Friction's quantities at the step start x (module docstring):
@@ -216,7 +242,7 @@ class Barrier:
             return
         e, _, n, _, d1, _ = self._active(x)
         T = np.eye(3) - n[..., :, None] * n[..., None, :]
-        self.lagged = (e, -self.mu * d1, T, self.el.points(x)[e])
+        self.lagged = (e, -self.mu * d1, T, self.points(x)[e])
 
     def _slip(self, x):
         """(elements, μλ, T, u, y = |u|) of the lagged points at x."""
@@ -248,30 +274,28 @@ class Barrier:
         return e, (mul * f1_y)[..., None] * u, hess
 
     def surface_distance(self, x):
-        """δ = min over bodies of φ − r at every quadrature point, with the
-        nearest body's n and ∇²φ: (δ (ne, nq), n, H)."""
-        pts = self.el.points(x).reshape(-1, 3)
-        best = None
-        for body in self.bodies:
-            phi, n, H = body.distance(pts)
-            if best is None:
-                best = [phi, np.array(n), H]
-            else:
-                closer = phi < best[0]
-                best[0] = np.where(closer, phi, best[0])
-                best[1][closer], best[2][closer] = n[closer], H[closer]
-        shape = (self.el.ne, len(self.el.B))
-        return ((best[0] - self.radius).reshape(shape), best[1].reshape(*shape, 3),
-                best[2].reshape(*shape, 3, 3))
+        """δ = min over bodies of φ − r at every quadrature point, and which
+        body is the nearest: (δ (ne, nq), body index (ne, nq))."""
+        pts = self.points(x)
+        phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
+        nearest = np.argmin(phi, axis=0)
+        shape = pts.shape[:2]
+        return ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
+                nearest.reshape(shape), pts)
 
     def _active(self, x):
         """Elements with a point within the gap, and f', f'' (weighted by
-        w_q |X'|) there: (elements, δ, n, H, w f', w f'')."""
-        delta, n, H = self.surface_distance(x)
+        w_q |X'|) there: (elements, δ, n, H, w f', w f''); n and ∇²φ are
+        those of each point's nearest body, formed for these elements only."""
+        delta, nearest, pts = self.surface_distance(x)
         e = np.flatnonzero((delta < self.gap).any(axis=1))
+        n, H = np.zeros((len(e),) + pts.shape[1:]), np.zeros((len(e),) + pts.shape[1:] + (3,))
+        for b, body in enumerate(self.bodies):
+            mine = nearest[e] == b
+            _, n[mine], H[mine] = body.distance(pts[e][mine])
         s = np.maximum(self.gap - delta[e], 0.0)
         W = self.el.W[e]
-        return e, delta[e], n[e], H[e], -W * self.kappa * s**2, 2 * W * self.kappa * s
+        return e, delta[e], n, H, -W * self.kappa * s**2, 2 * W * self.kappa * s
 
     def energy(self, x):
         """E_c (local elements)."""
@@ -312,13 +336,13 @@ class Barrier:
         from x0 to x1 (local; +inf without elements), each path sampled
         every ``resolution`` × r at least: a step that carried a yarn point
         through a body shows a depth there even when it ends outside."""
-        p0, p1 = self.el.points(x0), self.el.points(x1)
+        p0, p1 = self.points(x0), self.points(x1)
         reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
         m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
         deepest = np.inf
         for tau in np.arange(1, m + 1) / m:
             pts = (p0 + tau * (p1 - p0)).reshape(-1, 3)
-            phi = np.min([body.distance(pts)[0] for body in self.bodies], axis=0)
+            phi = np.min([body.phi(pts) for body in self.bodies], axis=0)
             deepest = min(deepest, float(phi.min(initial=np.inf)) - self.radius)
         return deepest
 

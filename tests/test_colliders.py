@@ -19,10 +19,12 @@ BODIES = {"sphere": Sphere(np.array([0.01, -0.002, 0.0]), 0.004),
 
 @pytest.mark.parametrize("name", BODIES)
 def test_distance_normal_and_curvature(name):
-    """n = ∇φ and ∇²φ = ∂n/∂x by central differences; |n| = 1."""
+    """n = ∇φ and ∇²φ = ∂n/∂x by central differences; |n| = 1; φ alone
+    (``phi``) is the same φ."""
     body = BODIES[name]
     x = np.random.default_rng(0).uniform(-0.01, 0.03, (50, 3))
     phi, n, H = body.distance(x)
+    assert np.array_equal(body.phi(x), phi)
     assert np.allclose(np.linalg.norm(n, axis=1), 1)
     h = 1e-7
     for i in range(3):
