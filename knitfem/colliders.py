@@ -274,8 +274,9 @@ class Barrier:
         return e, (mul * f1_y)[..., None] * u, hess
 
     def surface_distance(self, x):
-        """δ = min over bodies of φ − r at every quadrature point, and which
-        body is the nearest: (δ (ne, nq), body index (ne, nq))."""
+        """δ = min over bodies of φ − r at every quadrature point, which body
+        is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
+        x_eq (ne, nq, 3))."""
         pts = self.points(x)
         phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
         nearest = np.argmin(phi, axis=0)

@@ -79,10 +79,14 @@ class Jersey:
             raise ValueError(f"knit shape {knit!r}: use one of {', '.join(SHAPES)}")
         self.rows, self.cols = int(rows), int(cols)
         self.radius, self.shape, self.knit = float(radius), shape, knit
-        self.closed = knit == "tube"
         self.scale = self.radius / shape.r
         self.nseg = SEGMENTS_PER_STITCH * self.cols
         self.ncp = self.nseg if self.closed else self.nseg + 3
+
+    @property
+    def closed(self):
+        """Every course closed on itself (knitted in the round)."""
+        return self.knit == "tube"
 
     def parameter(self, t):
         """Spline parameter s of the curve parameter t."""

@@ -54,6 +54,13 @@ _LATTICE = "lattice_index"
 _PERIODIC = "periodic"
 
 
+def _spaced(lo, hi, n):
+    """n control points of a linear open spline over [lo, hi]: equally spaced,
+    x_i = lo + (i − 1)(hi − lo)/(n − 3), so its value at s = 0 is lo and at
+    s = n − 3 is hi."""
+    return lo + (np.arange(n) - 1) * (hi - lo) / (n - 3)
+
+
 class BoundingVolume:
     """Two bicubic B-spline surfaces joined linearly through the thickness.
 
@@ -128,8 +135,7 @@ class BoundingVolume:
         if flat:
             raise ValueError(
                 f"points span no volume along {', '.join(flat)}; use margin > 0")
-        x = lo[0] + (np.arange(n1) - 1) * (hi[0] - lo[0]) / (n1 - 3)
-        y = lo[1] + (np.arange(n2) - 1) * (hi[1] - lo[1]) / (n2 - 3)
+        x, y = _spaced(lo[0], hi[0], n1), _spaced(lo[1], hi[1], n2)
         z = np.array([lo[2], hi[2]])
         Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
         return cls(np.stack([X, Y, Z], axis=-1) @ R.T)
@@ -157,7 +163,7 @@ class BoundingVolume:
         if not radii[0] > 0:
             raise ValueError("the points reach the tube's axis: not a tube")
         lo, hi = pts[:, 1].min() - margin, pts[:, 1].max() + margin
-        y = lo + (np.arange(n2) - 1) * (hi - lo) / (n2 - 3)
+        y = _spaced(lo, hi, n2)
         phi = 2 * np.pi * np.arange(n1) / n1
         r = radii / bspline.junction_symbol(2 * np.pi / n1)
         net = np.empty((2, n2, n1, 3))

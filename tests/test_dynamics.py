@@ -95,7 +95,10 @@ def test_catenary_settles_to_analytic_sag():
     L, S = 0.1, 0.08
     fab = make_fabric("catenary", length=L, span=S, nseg=40)
     model = FullModel(SELF, fab, Material(EA=1e3, EI=1e-10, damping=20.0))
-    _, x, v = run(model, BackwardEuler, 1e-2, 100)
+    # a string (EI ≈ 0): at 1e-2 s steps Newton wanders between the hinge
+    # mechanism's equilibria and lands on another one, depending on round-off;
+    # at 4e-3 to 8e-3 s every run settles on the catenary
+    _, x, v = run(model, BackwardEuler, 5e-3, 200)
     P = x.getArray().reshape(-1, 3)
     from knitfem import bspline
     s = np.linspace(0, 40, 801)
