@@ -28,7 +28,7 @@ from cython.view cimport array as cvarray
 
 # Raised whenever a kernel's arguments change: knitfem.kernels refuses an
 # extension built from an older source (run make setup).
-VERSION = 3
+VERSION = 4
 
 
 cdef inline void cross(const double *a, const double *b, double *c) nogil:
@@ -52,10 +52,13 @@ cdef inline void add_outer(double *H, const double *a, const double *b,
 
 cdef inline void point_terms(const double *y, double Xp2, double W, double kappa0,
                              double EA, double EI, double delta, double *gy,
-                             double *Hy, bint hessian) nogil:
+                             double *Hy, bint hessian, const double *r) nogil:
     """gy (6) and Hy (6 × 6, symmetric) at one point; y = (u, v).
 
     Stretching: f₁ = EA W e, f₂ = EA W, ∂e/∂y = (u/|X'|², 0),
+    with e = (u·r − ½|r|² − ½|X'|²)/|X'|² in Hy (not gy) when the reference
+    tangent r = r' is given (not NULL): the MIP axial force of
+    ``yarn.stretch_terms``,
     ∂²e/∂y² = diag(1/|X'|², 0) ⊗ I₃. Bending (EI ≠ 0): f₁, f₂, c' and c'' of
     ``yarn.bend_terms``; c'' = C ⊗ I₃ − 2P zzᵀ + 4P (UVᵀ + VUᵀ)
     − 6B⁻⁴ (A'Uᵀ + UA'ᵀ) + 48AB⁻⁵ UUᵀ, z = (v, u), U = (u, 0), V = (0, v),
@@ -72,7 +75,10 @@ cdef inline void point_terms(const double *y, double Xp2, double W, double kappa
     cdef double *H11 = Hy + 21
     cdef int i, m, n
     # stretching
-    e = 0.5 * (dot(u, u) - Xp2) / Xp2
+    if r == NULL:
+        e = 0.5 * (dot(u, u) - Xp2) / Xp2
+    else:
+        e = (dot(u, r) - 0.5 * dot(r, r) - 0.5 * Xp2) / Xp2
     f1 = EA * W * e
     f2 = EA * W / (Xp2 * Xp2)
     for i in range(3):
@@ -150,11 +156,14 @@ cdef inline void element_y(const double *x, const int64_t *ce, const double *d,
 cdef void element_hessian(const double *x, const int64_t *ce, const double *D,
                           const double *Xp2, const double *W, const double *kappa0,
                           Py_ssize_t nq, double EA, double EI, double delta,
-                          double *K) nogil:
+                          double *K, const double *xref) nogil:
     """K_e (12 × 12, exactly symmetric) of one element: at every point
     Z = Hy (D_q ⊗ I₃) (6 × 12), then K += (D_q ⊗ I₃)ᵀ Z on the 3 × 3 blocks
-    (a, b ≥ a), mirrored at the end. D (nq, 2, 4); Xp2, W, kappa0 (nq)."""
+    (a, b ≥ a), mirrored at the end. D (nq, 2, 4); Xp2, W, kappa0 (nq);
+    xref the MIP reference state (ncp, 3) or NULL."""
     cdef double y[6]
+    cdef double yr[6]
+    cdef const double *r = NULL
     cdef double gy[6]
     cdef double Hy[36]
     cdef double Z[72]
@@ -166,7 +175,10 @@ cdef void element_hessian(const double *x, const int64_t *ce, const double *D,
     for q in range(nq):
         d = D + 8 * q
         element_y(x, ce, d, y)
-        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, True)
+        if xref != NULL:
+            element_y(xref, ce, d, yr)
+            r = yr
+        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, True, r)
         for m in range(6):
             for b in range(4):
                 for j in range(3):
@@ -198,7 +210,7 @@ cdef void element_gradient(const double *x, const int64_t *ce, const double *D,
     for q in range(nq):
         d = D + 8 * q
         element_y(x, ce, d, y)
-        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, False)
+        point_terms(y, Xp2[q], W[q], kappa0[q], EA, EI, delta, gy, Hy, False, NULL)
         for a in range(4):
             for i in range(3):
                 G[3 * a + i] += d[a] * gy[i] + d[4 + a] * gy[3 + i]
@@ -207,7 +219,8 @@ cdef void element_gradient(const double *x, const int64_t *ce, const double *D,
 # Arguments common to the kernels below: x (ncp, 3) the control points;
 # conn (ne, 4) the elements' control points; D (nq, 2, 4) = [b'; b''] at the
 # Gauss points; Xp2, W, kappa0 (ne, nq) = |X'|², w_q |X'|, κ₀; EA, EI, delta
-# the stiffnesses and the curvature regularisation of ``yarn.bend_terms``.
+# the stiffnesses and the curvature regularisation of ``yarn.bend_terms``;
+# xref (ncp, 3) or None the MIP reference state of ``yarn.stretch_terms``.
 
 def add_gradient(const double[:, ::1] x, const int64_t[:, ::1] conn,
                  const double[:, :, ::1] D, const double[:, ::1] Xp2,
@@ -247,16 +260,18 @@ def element_gradients(const double[:, ::1] x, const int64_t[:, ::1] conn,
 def element_hessians(const double[:, ::1] x, const int64_t[:, ::1] conn,
                      const double[:, :, ::1] D, const double[:, ::1] Xp2,
                      const double[:, ::1] W, const double[:, ::1] kappa0,
-                     double EA, double EI, double delta, double[:, :, ::1] out):
+                     double EA, double EI, double delta, double[:, :, ::1] out,
+                     const double[:, ::1] xref=None):
     """out[e] = ∂²E/∂p_e² (ne, 12, 12), local DOF 3a + i."""
     cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
+    cdef const double *pref = NULL if xref is None else &xref[0, 0]
     if ne == 0:
         return
     with nogil:
         for e in range(ne):
             element_hessian(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
                             &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta,
-                            &out[e, 0, 0])
+                            &out[e, 0, 0], pref)
 
 
 def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
@@ -264,7 +279,7 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
                    const double[:, ::1] W, const double[:, ::1] kappa0,
                    double EA, double EI, double delta,
                    const int64_t[:, :, ::1] block, const int64_t[:, ::1] stride,
-                   double[::1] values):
+                   double[::1] values, const double[:, ::1] xref=None):
     """values = Σ_e K_e, zeroed first: the 3 × 3 block (a, b) of K_e is added
     at values[block[e, a, b] + stride[e, a] i + j] (CSR rows of one control
     point are ``stride`` apart)."""
@@ -272,6 +287,7 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
     cdef Py_ssize_t e, ne = conn.shape[0], nq = D.shape[0]
     cdef int a, b, i, j
     cdef double *v
+    cdef const double *pref = NULL if xref is None else &xref[0, 0]
     if values.shape[0]:
         memset(&values[0], 0, values.shape[0] * sizeof(double))
     if ne == 0:
@@ -279,7 +295,7 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
     with nogil:
         for e in range(ne):
             element_hessian(&x[0, 0], &conn[e, 0], &D[0, 0, 0], &Xp2[e, 0],
-                            &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, K)
+                            &W[e, 0], &kappa0[e, 0], nq, EA, EI, delta, K, pref)
             for a in range(4):
                 for b in range(4):
                     v = &values[block[e, a, b]]

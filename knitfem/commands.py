@@ -289,6 +289,10 @@ def integrator_from_options(opts):
                            nonnegative=True)
     if rho_inf > 1:
         raise KnitError(f"-knit_rho_inf {rho_inf:g}: expected a value in [0, 1]")
+    tangent = opts.getChoice("tangent", "exact", ("exact", "mip"),
+                             "Newton matrix: the exact one, or its axial force "
+                             "linearised from the last iterate (mixed integration "
+                             "point: fewer iterations on large steps from rest)")
     if method == "symplectic" and dt == 0:
         raise KnitError("-knit_integrator symplectic: an explicit step needs a "
                         "fixed -knit_dt (say 5e-7)")
@@ -300,8 +304,11 @@ def integrator_from_options(opts):
         control = StepControl(dt or dt0, adaptive=dt == 0, rtol=rtol, atol=atol,
                               dt_min=dt_min, dt_max=dt_max)
         if method == "alpha":
-            return GeneralizedAlpha(system, control.dt, control, rho_inf=rho_inf)
-        return INTEGRATORS[method](system, control.dt, control)
+            return GeneralizedAlpha(system, control.dt, control, rho_inf=rho_inf,
+                                    tangent=tangent)
+        if method == "symplectic":
+            return INTEGRATORS[method](system, control.dt, control)
+        return INTEGRATORS[method](system, control.dt, control, tangent=tangent)
 
     return make
 

@@ -6,11 +6,12 @@ setup``); ``-knit_kernels numpy`` runs the vectorised reference of
 ``knitfem.yarn``. Both compute, for the elements of a ``YarnElements``,
 
     add_gradient(x, out, scale)          out += scale · ∂E/∂p            (ncp, 3)
-    hessian_values(x, slot, values)      values = Σ_e K_e, K_e[m, n] added at
+    hessian_values(x, slot, values, xref)  values = Σ_e K_e, K_e[m, n] added at
                                          values[slot[e, m, n]]  (CSR values)
-    element_gradient(x), element_hessian(x)   (ne, 12), (ne, 12, 12)
+    element_gradient(x), element_hessian(x, xref)   (ne, 12), (ne, 12, 12)
 
-with E = E_s + E_b, and the same mathematics (``knitfem.yarn``'s docstring);
+with E = E_s + E_b (``xref``, optional: the axial force of the Newton matrix
+linearised from the state xref, ``yarn.stretch_terms``), and the same mathematics (``knitfem.yarn``'s docstring);
 the tests hold them equal to 1e-12 relative. x is (ncp, 3), C-contiguous
 (a view of a PETSc Vec's array will do).
 """
@@ -22,7 +23,7 @@ from .options import KnitError
 __all__ = ["KINDS", "yarn_kernels", "compiled_module"]
 
 KINDS = ("compiled", "numpy")
-VERSION = 3                 # of knitfem/_compiled.pyx, which this module calls
+VERSION = 4                 # of knitfem/_compiled.pyx, which this module calls
 
 
 def compiled_module():
@@ -52,15 +53,15 @@ class NumpyKernels:
     def add_gradient(self, x, out, scale=1.0):
         out += scale * self.elements.gradient(x)
 
-    def hessian_values(self, x, slot, values):
-        H = self.elements.element_hessian(x)
+    def hessian_values(self, x, slot, values, xref=None):
+        H = self.elements.element_hessian(x, xref)
         values[:] = np.bincount(slot.ravel(), weights=H.ravel(), minlength=len(values))
 
     def element_gradient(self, x):
         return self.elements.element_gradient(x)
 
-    def element_hessian(self, x):
-        return self.elements.element_hessian(x)
+    def element_hessian(self, x, xref=None):
+        return self.elements.element_hessian(x, xref)
 
 
 class CompiledKernels:
@@ -81,21 +82,26 @@ class CompiledKernels:
     def add_gradient(self, x, out, scale=1.0):
         self.module.add_gradient(np.ascontiguousarray(x), *self.args, scale, out)
 
-    def hessian_values(self, x, slot, values):
+    def hessian_values(self, x, slot, values, xref=None):
         if self.slot is not slot:
             self.slot, self.blocks = slot, block_slots(slot)
         self.module.hessian_values(np.ascontiguousarray(x), *self.args, *self.blocks,
-                                   values)
+                                   values, _contiguous(xref))
 
     def element_gradient(self, x):
         out = np.empty((self.ne, 12))
         self.module.element_gradients(np.ascontiguousarray(x), *self.args, out)
         return out
 
-    def element_hessian(self, x):
+    def element_hessian(self, x, xref=None):
         out = np.empty((self.ne, 12, 12))
-        self.module.element_hessians(np.ascontiguousarray(x), *self.args, out)
+        self.module.element_hessians(np.ascontiguousarray(x), *self.args, out,
+                                     _contiguous(xref))
         return out
+
+
+def _contiguous(x):
+    return None if x is None else np.ascontiguousarray(x)
 
 
 def block_slots(slot):

@@ -331,15 +331,17 @@ class MixedModel(EmbeddedModel):
         self.full.forces(self.eps, self.epsdot, self.Qfull)
         G.multTranspose(self.Qfull, Q)
 
-    def stiffness(self, q, mu=None, weight=1.0):
+    def stiffness(self, q, mu=None, weight=1.0, xref=None):
         """Γ_mixᵀ (K + w Σ μ_i ∇²g_i)(Γ_mix q) Γ_mix by PtAP, the symbolic
-        product reused; the kept rows' μ placed among the full model's."""
+        product reused; the kept rows' μ placed among the full model's;
+        ``xref`` the MIP reference state (``FullModel.stiffness``)."""
         if mu is not None:
             self.mu_full.zeroEntries()
             self.mu_full.getArray()[self.kept_rows] = \
                 mu.getArray(readonly=True)[:len(self.kept_rows)]
             mu = self.mu_full
-        K = self.full.stiffness(self.full_state(q, self.eps), mu, weight)
+        ref = None if xref is None else self.full_state(xref, self.eps_ref)
+        K = self.full.stiffness(self.full_state(q, self.eps), mu, weight, ref)
         with EV_PTAP:
             if self.K is None:
                 self.K = K.PtAP(self.space.Gamma)
@@ -349,7 +351,7 @@ class MixedModel(EmbeddedModel):
         return self.K
 
     def destroy(self):
-        for A in (self.M, self.m, self.C, self.Qg, self.K, self.eps, self.epsdot,
+        for A in (self.M, self.m, self.C, self.Qg, self.K, self.eps, self.eps_ref, self.epsdot,
                   self.Qfull, self._proj, self.eps0, self.product, self.mu_full,
                   self.g_full, self.Cq, self.dq, self.deps):
             if A is not None:

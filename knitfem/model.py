@@ -249,21 +249,25 @@ class FullModel:
             cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
         self._tangent = True
 
-    def stiffness_values(self, x):
+    def stiffness_values(self, x, xref=None):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
         (``pattern.blocks3``): K = Σ_e K_e, written into ``K_values``
-        (returned) through the slots of the element entries."""
+        (returned) through the slots of the element entries. With the state
+        ``xref`` of the last Newton linearisation, the Newton matrix whose
+        axial force is linearised from it (MIP, ``yarn.stretch_terms``)."""
         with EV_TANGENT:
             P = self.yarn_points(x)
-            self.kernels.hessian_values(P, self.slot3, self.K_values)
+            ref = None if xref is None else self.yarn_points(xref)
+            self.kernels.hessian_values(P, self.slot3, self.K_values, ref)
             if self.barrier is not None:
                 self.barrier.add_hessian(P, self.slot3, self.K_values)
             return self.K_values
 
-    def stiffness(self, x, mu=None, weight=1.0):
+    def stiffness(self, x, mu=None, weight=1.0, xref=None):
         """K = ∂²E/∂ε² + w Σ_i μ_i ∇²g_i (symmetric, full 3×3 blocks, block
         size 3; reused), in the pattern (indptr3, indices3) of the yarn
-        elements and the contacts; μ a Vec of C's row layout, or None.
+        elements and the contacts; μ a Vec of C's row layout, or None;
+        ``xref`` the MIP reference of ``stiffness_values``.
 
         On one rank K holds ``tangent_values`` itself
         (``createAIJWithArrays``); on several, they are copied in."""
@@ -271,7 +275,7 @@ class FullModel:
             self._tangent_pattern()
         values = self.tangent_values
         values.fill(0.0)
-        values[self.tangent_slot] = self.stiffness_values(x)
+        values[self.tangent_slot] = self.stiffness_values(x, xref)
         if mu is not None and weight:
             with EV_TANGENT:
                 self.constraints.add_curvature(mu, weight, values)

@@ -213,8 +213,8 @@ def embedding_from_options(opts, comm, fabric, layout=None):
 class EmbeddedModel:
     """What a mechanical system whose yarn coordinates are ε = Γ q offers
     through its full model: ε, the gathered control points, the elastic
-    energy and the strain. Subclasses hold ``Gamma``, ``full`` and a work
-    vector ``eps``."""
+    energy and the strain. Subclasses hold ``Gamma``, ``full`` and work
+    vectors ``eps`` and ``eps_ref``."""
 
     def _embed(self, full, G, Gs, prefix):
         """What both share: the full model's data, M = Γᵀ M Γ and m = Γ̃ᵀ m Γ̃
@@ -232,6 +232,7 @@ class EmbeddedModel:
         G.multTranspose(full.Qg, self.Qg)
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.dq, self.deps = G.createVecRight(), G.createVecLeft()
+        self.eps_ref = G.createVecLeft()         # Γ q of a MIP reference
 
     def full_state(self, q, out=None):
         """ε = Γ q."""
@@ -434,18 +435,20 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             self.full.add_elastic_forces(self.eps, self.Qfull)
             G.multTransposeAdd(self.Qfull, Q, Q)
 
-    def stiffness(self, alpha, mu=None, weight=1.0):
+    def stiffness(self, alpha, mu=None, weight=1.0, xref=None):
         """Γᵀ K(Γα) Γ: sampled, dense (``GroupedTangent``) or by PtAP,
         reusing the symbolic product (linear constraints: no curvature, μ
-        unused)."""
+        unused); ``xref`` the MIP reference state (``FullModel.stiffness``)."""
         if self.sampled is not None:
+            ref = None if xref is None else self._all(xref).copy()
             return self._dense_stiffness(
-                lambda R: self.sampled.tangent(self._all(alpha), R))
+                lambda R: self.sampled.tangent(self._all(alpha), R, ref))
         x = self.full_state(alpha, self.eps)
+        ref = None if xref is None else self.full_state(xref, self.eps_ref)
         if self.dense is not None:
             return self._dense_stiffness(
-                lambda R: self.dense(self.full.stiffness_values(x), R))
-        K = self.full.stiffness(x)
+                lambda R: self.dense(self.full.stiffness_values(x, ref), R))
+        K = self.full.stiffness(x, xref=ref)
         with EV_PTAP:
             if self.K is None:
                 self.K = K.PtAP(self.embedding.Gamma)
@@ -490,6 +493,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         if self.sampled is not None:
             self.gather.destroy()
             self.alpha_all.destroy()
-        for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps):
+        for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps,
+                  self.eps_ref):
             if A is not None:
                 A.destroy()

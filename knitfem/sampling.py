@@ -102,9 +102,11 @@ class SampledElements:
         self.kernels.add_gradient(self.points_of(alpha), g, -1.0)
         out += self.Gt @ g
 
-    def tangent(self, alpha, out):
-        """out (3 nvolume, 3 nvolume) = Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e."""
-        self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values)
+    def tangent(self, alpha, out, alpha_ref=None):
+        """out (3 nvolume, 3 nvolume) = Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e (with
+        ``alpha_ref``, its axial force linearised from that state: MIP)."""
+        ref = None if alpha_ref is None else self.points_of(alpha_ref)
+        self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values, ref)
         if self.grouped is not None:
             return self.grouped(self.values, out)
         G = sparse.kron(self.G, sparse.identity(3), format="csr")

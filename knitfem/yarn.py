@@ -107,12 +107,25 @@ def chain_rule(D, terms, hessian=True):
     return G, 0.5 * (K + K.transpose(0, 2, 1))      # symmetric to the last bit
 
 
-def stretch_terms(y, Xp2, W, EA, hessian=True):
+def stretch_terms(y, Xp2, W, EA, hessian=True, yref=None):
     """Stretching: ε = e = (|x'|² − |X'|²)/(2|X'|²), ψ = ½ EA e².
 
         ∂e/∂x' = x'/|X'|²,   ∂²e/∂x'² = I/|X'|²,   ∂e/∂x'' = 0,
 
     so ∂²e/∂y² = diag(1/|X'|², 0) ⊗ I₃ and no pairs.
+
+    With ``yref`` = (r', r'') of a reference state r (the last Newton
+    iterate), the axial force of the geometric term f₁ ∂²e/∂y² is the mixed
+    integration point (MIP) one of Magisano, Leonetti & Garcea (CMAME 313,
+    2017), EA ē with the strain linearised from r,
+
+        ē = e(r) + ∂e/∂x'(r)·(x' − r') = (x'·r' − ½|r'|² − ½|X'|²)/|X'|²
+          = e(x) − ½|x' − r'|²/|X'|²:
+
+    the Newton matrix of the stretch with its axial force an unknown of its
+    own at each point, condensed (the residual is unchanged). ē = e at x = r,
+    so the solution is the same; Newton no longer sees the axial force that
+    the linearisation of a turn would give a stiff yarn.
 
     Parameters
     ----------
@@ -128,7 +141,12 @@ def stretch_terms(y, Xp2, W, EA, hessian=True):
         Arguments of ``chain_rule`` (H is None unless ``hessian``).
     """
     u = y[:, :, 0]
-    e = 0.5 * (np.einsum("eqi,eqi->eq", u, u) - Xp2) / Xp2
+    if yref is None:
+        e = 0.5 * (np.einsum("eqi,eqi->eq", u, u) - Xp2) / Xp2
+    else:
+        r = yref[:, :, 0]
+        e = (np.einsum("eqi,eqi->eq", u, r) - 0.5 * np.einsum("eqi,eqi->eq", r, r)
+             - 0.5 * Xp2) / Xp2
     g = np.zeros_like(y)
     g[:, :, 0] = u / Xp2[..., None]
     H = None
@@ -317,13 +335,14 @@ class YarnElements:
         """E = E_s + E_b."""
         return self.stretch_energy(x) + self.bend_energy(x)
 
-    def _terms(self, y, hessian):
-        """Point derivatives of every energy with a non-zero stiffness.
+    def _terms(self, y, hessian, yref=None):
+        """Point derivatives of every energy with a non-zero stiffness
+        (``yref``: the stretch's MIP reference, see ``stretch_terms``).
 
         Stretching is always included (it is all zeros when EA = 0), so that
         ``chain_rule`` receives at least one energy.
         """
-        yield stretch_terms(y, self.Xp2, self.W, self.EA, hessian)
+        yield stretch_terms(y, self.Xp2, self.W, self.EA, hessian, yref)
         if self.EI != 0.0:
             yield bend_terms(y, self.kappa0, self.W, self.EI, self.delta, hessian)
 
@@ -332,9 +351,12 @@ class YarnElements:
         terms = self._terms(self.tangents(x), hessian=False)
         return chain_rule(self.D, terms, hessian=False)[0]
 
-    def element_hessian(self, x):
-        """∂²E/∂p∂p per element, (ne, 12, 12), symmetric, local DOF 3a + i."""
-        return chain_rule(self.D, self._terms(self.tangents(x), hessian=True))[1]
+    def element_hessian(self, x, xref=None):
+        """∂²E/∂p∂p per element, (ne, 12, 12), symmetric, local DOF 3a + i;
+        with ``xref``, the MIP Newton matrix whose axial force is linearised
+        from the state xref (``stretch_terms``)."""
+        yref = None if xref is None else self.tangents(xref)
+        return chain_rule(self.D, self._terms(self.tangents(x), True, yref))[1]
 
     def assemble_vector(self, Ge):
         """Σ_e of element vectors (ne, 12) into control-point rows, (ncp, 3).

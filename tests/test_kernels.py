@@ -42,6 +42,8 @@ def test_element_gradient_and_hessian_equal_reference(case):
     H = fast.element_hessian(x)
     assert relative(H, ref.element_hessian(x)) < TOL
     assert np.array_equal(H, H.transpose(0, 2, 1))
+    xref = x + 0.05 * np.random.default_rng(6).normal(size=x.shape)   # MIP
+    assert relative(fast.element_hessian(x, xref), ref.element_hessian(x, xref)) < TOL
 
 
 @pytest.mark.parametrize("case", ["helices", "no bending"])
@@ -56,7 +58,10 @@ def test_assembled_gradient_and_values_equal_reference(case):
         k.add_gradient(x, out[kind], -2.5)
         values[kind] = np.full(len(indices3), np.nan)
         k.hessian_values(x, slot, values[kind])
+        values[kind, "mip"] = np.full(len(indices3), np.nan)
+        k.hessian_values(x, slot, values[kind, "mip"], 0.9 * x)
     assert relative(out["compiled"], out["numpy"]) < TOL
+    assert relative(values["compiled", "mip"], values["numpy", "mip"]) < TOL
     assert relative(out["numpy"], start - 2.5 * y.gradient(x)) < TOL
     assert relative(values["compiled"], values["numpy"]) < TOL
 

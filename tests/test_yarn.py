@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from knitfem.kernels import KINDS, yarn_kernels
-from knitfem.yarn import YarnElements
+from knitfem.yarn import YarnElements, chain_rule, stretch_terms
 
 RHO, EA, EI = 0.3, 10.0, 1e-2
 NCP = 10
@@ -42,11 +42,12 @@ def yarn(energy="both", nyarn=2, seed=0):
     return YarnElements(X, chain(NCP, nyarn), RHO, *ENERGIES[energy])
 
 
-def dense_hessian(y, x, kind="numpy"):
-    """Assembled ∂²E/∂p² (3 ncp, 3 ncp) from the element Hessians."""
+def dense_hessian(y, x, kind="numpy", xref=None):
+    """Assembled ∂²E/∂p² (3 ncp, 3 ncp) from the element Hessians (with
+    ``xref``, the MIP Newton matrix linearised from xref)."""
     K = np.zeros((3 * y.ncp, 3 * y.ncp))
     np.add.at(K, (y.dof[:, :, None], y.dof[:, None, :]),
-              yarn_kernels(y, kind).element_hessian(x))
+              yarn_kernels(y, kind).element_hessian(x, xref))
     return K
 
 
@@ -237,3 +238,39 @@ def test_bending_smooth_at_straight_configuration(kind):
     assert np.linalg.eigvalsh(K).min() > -1e-10 * np.linalg.norm(K)  # a minimum
     fd = central_differences(gradient(y, kind), x, 1e-6)
     assert relative(K, fd) < 1e-6
+
+
+# -- the mixed integration point (MIP) Newton matrix ----------------------------
+def mixed_residual(y, x, n):
+    """The stretch with its axial force n (ne, nq) an unknown of its own:
+    R_x = Σ_q W n ∂e/∂p, R_n = W (e(x) − n/EA), stacked."""
+    _, f2, g, H = stretch_terms(y.tangents(x), y.Xp2, y.W, y.EA, hessian=False)
+    Rx = y.assemble_vector(chain_rule(y.D, [(y.W * n, f2, g, H)], hessian=False)[0])
+    return np.concatenate([Rx.ravel(), (y.W * (y.strain(x) - n / y.EA)).ravel()])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_mip_matrix_is_the_condensed_jacobian_of_the_mixed_stretch(kind):
+    """With the axial force n = EA ē, ē = e(r) + ∂e(r)·(x − r) (where Newton
+    puts it after a step from r), the MIP matrix is J_xx − J_xn J_nn⁻¹ J_nx of
+    the mixed system's Jacobian, here by central differences."""
+    y = yarn("stretch")
+    r = deformed(y.X, 3, 0.05)
+    x = deformed(r, 4, 0.05)
+    dr = y.tangents(x)[:, :, 0] - y.tangents(r)[:, :, 0]
+    n = y.EA * (y.strain(x) - 0.5 * np.einsum("eqi,eqi->eq", dr, dr) / y.Xp2)
+    m = 3 * y.ncp
+    J = central_differences(
+        lambda z: mixed_residual(y, z[:m].reshape(-1, 3), z[m:].reshape(n.shape)),
+        np.concatenate([x.ravel(), n.ravel()]), 1e-6)
+    condensed = J[:m, :m] - J[:m, m:] @ np.linalg.solve(J[m:, m:], J[m:, :m])
+    K = dense_hessian(y, x, kind, xref=r)
+    assert relative(K, condensed) < 1e-6
+    assert relative(K, dense_hessian(y, x, kind)) > 1e-3      # not the exact one
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_mip_matrix_linearised_from_x_itself_is_the_hessian(kind):
+    y = yarn("both")
+    x = deformed(y.X, 5)
+    assert relative(dense_hessian(y, x, kind, xref=x), dense_hessian(y, x, kind)) < 1e-13
