@@ -5,11 +5,12 @@
     painter.finish()                        # waits; raises the first job's error
 
 The worker imports matplotlib as soon as it starts (while the run sets up),
-then reads jobs from its stdin, each a pickle of (name, args, kwargs) of a
+then reads jobs from a socket, each a pickle of (name, args, kwargs) of a
 drawing function of ``knitfem.io``, and runs them in order on its own core.
 After a job fails it runs no more (as when the pictures were drawn in line);
-when its stdin closes it writes back one pickle, the first job's exception
-or None, and exits. It is fork+exec (``subprocess``), safe after MPI_Init,
+when the run closes its end it answers with one pickle, the first job's
+exception or None, and exits; it also exits, after the jobs it has, when
+the run has gone. It is fork+exec (``subprocess``), safe after MPI_Init,
 and imports neither MPI nor PETSc. It ignores SIGINT and SIGTERM, which the
 terminal's process group (or a batch system) sends it with the run: the run
 finishes its step, and its close waits for the pictures, or kills the
@@ -19,6 +20,7 @@ worker when it stops at once.
 import os
 import pickle
 import signal
+import socket
 import subprocess
 import sys
 
@@ -26,25 +28,31 @@ __all__ = ["Painter"]
 
 
 class Painter:
-    """The worker process that draws the pictures (call on rank 0 only)."""
+    """The worker process that draws the pictures (call on rank 0 only).
+
+    Jobs and the answer go over a socket pair: a send to a worker that has
+    died is an error here (MSG_NOSIGNAL), not a SIGPIPE, which PETSc's signal
+    handler would turn into a crash."""
 
     def __init__(self):
         here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
-        self.proc = subprocess.Popen([sys.executable, "-m", "knitfem.painter"],
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     env=dict(os.environ, PYTHONPATH=path))
+        self.sock, theirs = socket.socketpair()
+        with theirs:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "knitfem.painter", str(theirs.fileno())],
+                pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
+                env=dict(os.environ, PYTHONPATH=path))
         self.paths = []
 
     def submit(self, name, path, *args, **kwargs):
         """Queue ``io.<name>(path, *args, **kwargs)``; returns at once (or when
-        the pipe has room). A worker that has died is reported by ``finish``."""
+        the socket has room). A worker that has died is reported by ``finish``."""
         self.paths.append(path)
+        job = pickle.dumps((name, (path,) + args, kwargs), pickle.HIGHEST_PROTOCOL)
         try:
-            pickle.dump((name, (path,) + args, kwargs), self.proc.stdin,
-                        protocol=pickle.HIGHEST_PROTOCOL)
-            self.proc.stdin.flush()
-        except BrokenPipeError:
+            self.sock.sendall(job, socket.MSG_NOSIGNAL)
+        except OSError:
             pass
 
     def finish(self):
@@ -52,13 +60,13 @@ class Painter:
         an OutputError when the worker died. The worker is gone afterwards,
         also when the wait is interrupted."""
         try:
+            answer = b""
             try:
-                self.proc.stdin.close()
-            except BrokenPipeError:
-                pass
-            try:
-                error = pickle.load(self.proc.stdout)
-            except (EOFError, pickle.UnpicklingError):
+                self.sock.shutdown(socket.SHUT_WR)
+                while chunk := self.sock.recv(1 << 16):
+                    answer += chunk
+                error = pickle.loads(answer)
+            except (OSError, EOFError, pickle.UnpicklingError):
                 error = self._died()
         finally:
             self.stop()
@@ -80,11 +88,7 @@ class Painter:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait()
-        for pipe in (self.proc.stdin, self.proc.stdout):
-            try:
-                pipe.close()
-            except BrokenPipeError:
-                pass
+        self.sock.close()
 
 
 def _portable(error):
@@ -97,8 +101,8 @@ def _portable(error):
         return RuntimeError(f"{type(error).__name__}: {error}")
 
 
-def main():
-    """The worker: draw every job read from stdin, then report on stdout."""
+def main(fd):
+    """The worker: draw every job read from socket ``fd``, then answer on it."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     from . import io
@@ -108,21 +112,22 @@ def main():
         io._pyplot()                     # the import, while the run sets up
     except Exception as e:
         error = e
-    while True:
-        try:
-            name, args, kwargs = pickle.load(sys.stdin.buffer)
-        except EOFError:
-            break
-        if error is None:
+    with socket.socket(fileno=fd) as sock, sock.makefile("rb") as jobs:
+        while True:
             try:
-                getattr(io, name)(*args, **kwargs)
-            except Exception as e:
-                error = e
-    try:
-        os.write(sys.stdout.fileno(), pickle.dumps(_portable(error)))
-    except BrokenPipeError:
-        pass
+                name, args, kwargs = pickle.load(jobs)
+            except EOFError:
+                break
+            if error is None:
+                try:
+                    getattr(io, name)(*args, **kwargs)
+                except Exception as e:
+                    error = e
+        try:
+            sock.sendall(pickle.dumps(_portable(error)))
+        except OSError:                  # the run has gone
+            pass
 
 
 if __name__ == "__main__":
-    main()
+    main(int(sys.argv[1]))
