@@ -26,6 +26,8 @@ import sys
 
 __all__ = ["Painter"]
 
+STOPS = {signal.SIGINT, signal.SIGTERM}
+
 
 class Painter:
     """The worker process that draws the pictures (call on rank 0 only).
@@ -38,11 +40,16 @@ class Painter:
         here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
         self.sock, theirs = socket.socketpair()
-        with theirs:
+        # the worker starts with the stop signals blocked, until it ignores them
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, STOPS)
+        try:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "knitfem.painter", str(theirs.fileno())],
                 pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
                 env=dict(os.environ, PYTHONPATH=path))
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            theirs.close()
         self.paths = []
 
     def submit(self, name, path, *args, **kwargs):
@@ -103,15 +110,16 @@ def _portable(error):
 
 def main(fd):
     """The worker: draw every job read from socket ``fd``, then answer on it."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOPS:
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)
     from . import io
 
-    error = None
     try:
         io._pyplot()                     # the import, while the run sets up
-    except Exception as e:
-        error = e
+    except Exception:
+        pass                             # the first picture fails the same way
+    error = None
     with socket.socket(fileno=fd) as sock, sock.makefile("rb") as jobs:
         while True:
             try:
