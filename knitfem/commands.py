@@ -323,6 +323,7 @@ def run(comm):
     from .adapt import adapt_options, adaptation_from_options
     from .interrupts import Interrupted
     from .output import CHANGEABLE, OutputDirectory
+    from .painter import Painter
     from .scenes import SCENES, make_fabric
     from .simulation import Simulation
 
@@ -391,7 +392,11 @@ def run(comm):
     out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
     if out.note:
         PETSc.Sys.Print(f"knitfem run: {out.note}")
+    drawn = not static and (movie or any(ts <= t_end for ts in snapshots))
+    painter = None
     try:
+        if drawn and comm.rank == 0:     # its matplotlib import overlaps the set-up
+            painter = Painter()
         try:
             fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
                                  tilt, pull, hold, turn)
@@ -425,7 +430,8 @@ def run(comm):
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
-                         command=sys.argv, adapt=adapt, animation=movie)
+                         command=sys.argv, adapt=adapt, animation=movie,
+                         painter=painter)
         if restart:
             sim.restart(restart, change)
         if adapt is not None:
@@ -450,6 +456,8 @@ def run(comm):
                         f"point dropped {rec['drop']:.4g} m; summary in "
                         f"{out.path}/summary.json")
     finally:
+        if painter is not None:          # finished by the run's close, or set-up failed
+            painter.stop()
         out.release()
 
 

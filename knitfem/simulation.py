@@ -6,9 +6,11 @@ The integrator chooses the step h (fixed, or by its error control) and lands
 exactly on t_stop, the next snapshot time or t_end. Every ``output_every``
 steps the driver prints a progress line (step, t, dt, Newton/KSP iterations,
 rejected steps, energies, constraint violation), appends the yarn
-centrelines to the time series and, at the requested snapshot times, draws a
-PNG; every ``checkpoint_every`` steps it writes a checkpoint. The files are
-the business of ``output.OutputDirectory``; the driver only calls it.
+centrelines to the time series and, at the requested snapshot times, has a
+PNG drawn (by ``painter.Painter``, a worker process on rank 0, while the
+stepping goes on); every ``checkpoint_every`` steps it writes a checkpoint.
+The files are the business of ``output.OutputDirectory``; the driver only
+calls it.
 
 Every step ends with one cheap collective check (the state finite, the
 constraint drift |g(ε)| within ``drift_tol``, no stop signal pending), so a
@@ -32,6 +34,7 @@ from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
 
 from . import bspline, interrupts, io, output
+from .painter import Painter
 
 __all__ = ["Simulation", "SimulationError"]
 
@@ -63,12 +66,16 @@ class Simulation:
         ``fingerprint`` it is what a checkpoint must agree on.
     command : list of str
         The command line, to print how to continue after an interrupt.
+    painter : painter.Painter or None
+        Rank 0: the worker that draws the pictures, started early by the
+        caller (its matplotlib import then overlaps the set-up); one is
+        started at the first picture otherwise. ``close`` finishes it.
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
-                 animation="", energy_growth=0.5, stall_steps=100):
+                 animation="", energy_growth=0.5, stall_steps=100, painter=None):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -104,6 +111,7 @@ class Simulation:
         self.rf = self.full.C.createVecLeft()
         self.Mv = system.M.createVecLeft()
         self.frames, self.movie = [], []
+        self.painter = painter
         self.initial_lowest = None
         self.rest_measures()
         self.problem = self.fingerprint()
@@ -192,16 +200,31 @@ class Simulation:
 
     def write_output(self, P):
         """A frame of the time series, and the snapshots now due (every rank
-        drops them from its list; rank 0 writes, every rank learns of an I/O
-        failure)."""
+        drops them from its list; rank 0 writes and has their PNGs drawn,
+        every rank learns of an I/O failure)."""
         due = []
         while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
             due.append(self.snapshots.pop(0))
         if self.output is None:
             return
         if self.comm.rank == 0:
-            self.frames += [(f"t = {ts:g} s", P) for ts in due]
+            for ts in due:
+                self.draw_snapshot(f"t = {ts:g} s", P)
         self.output.rank0(self._write_frame, P)
+
+    def paint(self, name, *args, **kwargs):
+        """Have ``io.<name>(*args, **kwargs)`` drawn by the painter (rank 0;
+        started here if the caller gave none)."""
+        if self.painter is None:
+            self.painter = Painter()
+        self.painter.submit(name, *args, **kwargs)
+
+    def draw_snapshot(self, title, P):
+        """Keep a snapshot for the panel and have its PNG drawn (rank 0)."""
+        self.frames.append((title, P))             # title: "t = 0.4 s"
+        self.paint("draw", self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
+                   self.full.fabric.radius, view=self.view, bodies=self.bodies,
+                   title=f"{self.scene}, {self.system.kind} model, {title}")
 
     def _write_frame(self, P):
         if self.series is None:
@@ -216,30 +239,30 @@ class Simulation:
             self.movie.append((self.t, P))
 
     def write_panels(self):
-        """The pictures, once the stepping is over (drawing never holds up a
-        step): each snapshot, the snapshots side by side in one PNG in one
-        scale that fits them all, and the animation of the output frames
-        (rank 0)."""
+        """The pictures still to draw, once the stepping is over: the
+        snapshots side by side in one PNG in one scale that fits them all,
+        and the animation of the output frames; returns when the painter
+        has drawn every picture (its failure is an OutputError on every
+        rank)."""
         if self.output is None:
             return
         self.output.rank0(self._write_panels)
         self.frames, self.movie = [], []
 
     def _write_panels(self):
-        for title, P in self.frames:                 # title: "t = 0.4 s"
-            io.draw(self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
-                    self.full.fabric.radius, view=self.view, bodies=self.bodies,
-                    title=f"{self.scene}, {self.system.kind} model, {title}")
         if self.frames:
             titles, frames = zip(*self.frames)
-            io.draw_panels(self._path(f"{self.scene}_snapshots.png"), frames,
-                           self.full.fabric.radius, titles, view=self.view,
-                           bodies=self.bodies)
+            self.paint("draw_panels", self._path(f"{self.scene}_snapshots.png"),
+                       frames, self.full.fabric.radius, titles, view=self.view,
+                       bodies=self.bodies)
         if len(self.movie) > 1:
             times, frames = zip(*self.movie)
-            io.animate(self._path(self.animation), times, frames,
+            self.paint("animate", self._path(self.animation), times, frames,
                        self.full.fabric.radius, view=self.view, bodies=self.bodies,
                        title=f"{self.scene}, {self.system.kind} model")
+        if self.painter is not None:
+            painter, self.painter = self.painter, None
+            painter.finish()
 
     def checkpoint(self):
         """Write a checkpoint of everything needed to continue (collective);
@@ -303,7 +326,10 @@ class Simulation:
         self.x.getArray()[:], self.v.getArray()[:] = ckpt.x[lo:hi], ckpt.v[lo:hi]
         self.t, self.step_count = ckpt.t, ckpt.step
         self.stats.update(ckpt.stats)
-        self.frames = ckpt.frames if self.comm.rank == 0 else []
+        self.frames = []
+        if self.comm.rank == 0 and self.output is not None:   # drawn again
+            for title, P in ckpt.frames:
+                self.draw_snapshot(title, P)
         extra = ckpt.extra
         self.initial_lowest = extra.get("initial_lowest", self.initial_lowest)
         self.steps_taken = list(extra.get("steps_taken", []))
@@ -584,10 +610,14 @@ class Simulation:
                 raise
 
     def close(self):
-        """Draw the snapshot panel and release a directory claimed here."""
+        """Draw the last pictures, wait for the painter, and release a
+        directory claimed here."""
         try:
             self.write_panels()
         finally:
             self.series = None
+            if self.painter is not None:         # write_panels did not finish it
+                self.painter.stop()
+                self.painter = None
             if self.own_output:
                 self.output.release()

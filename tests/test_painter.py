@@ -1,0 +1,118 @@
+"""The picture worker: the same files as drawing in line, a failed picture
+as the run's one-line OutputError, and a dead worker reported, not waited
+for."""
+
+import os
+import signal
+import time
+
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from helpers import jersey
+from knitfem import io
+from knitfem.model import FullModel, Material
+from knitfem.output import OutputDirectory, OutputError
+from knitfem.painter import Painter
+from knitfem.simulation import Simulation
+from solvers.integrators import BackwardEuler
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
+                                reason="the worker belongs to rank 0")
+
+SELF = PETSc.COMM_SELF
+
+
+def fabrics():
+    """Two poses of a 2x2 swatch and its yarn radius."""
+    fab = jersey(2, 2)
+    return fab.X, fab.X * [1.0, 0.8, 1.0], fab.radius
+
+
+def test_worker_draws_the_files_drawn_in_line(tmp_path):
+    P, Q, r = fabrics()
+    jobs = [("draw", "a.png", (P, r), dict(title="t = 0.4 s", view="oblique")),
+            ("draw_panels", "b.png", ((P, Q), r, ("0", "1")), {}),
+            ("animate", "c.gif", ((0.0, 0.1), (P, Q), r), dict(title="x"))]
+    painter = Painter()
+    for name, path, args, kwargs in jobs:
+        painter.submit(name, str(tmp_path / "worker" / path), *args, **kwargs)
+        getattr(io, name)(str(tmp_path / "line" / path), *args, **kwargs)
+    painter.finish()
+    assert painter.proc.returncode is not None
+    for _, path, _, _ in jobs:
+        drawn = (tmp_path / "worker" / path).read_bytes()
+        assert len(drawn) > 1000 and drawn == (tmp_path / "line" / path).read_bytes()
+
+
+def test_a_failed_picture_is_one_output_error_and_stops_the_drawing(tmp_path):
+    P, _, r = fabrics()
+    (tmp_path / "taken.png").mkdir()           # a directory where the PNG goes
+    out = OutputDirectory(SELF, str(tmp_path))
+    painter = Painter()
+
+    def draw():
+        for name in ("taken.png", "after.png"):
+            painter.submit("draw", str(tmp_path / name), P, r)
+        painter.finish()
+
+    with pytest.raises(OutputError, match=r"^cannot write \S+taken\S+: Is a "
+                                          r"directory$"):
+        out.rank0(draw)
+    assert not (tmp_path / "after.png").exists()   # as when drawn in line
+
+
+def test_a_killed_worker_is_reported_not_waited_for():
+    P, _, r = fabrics()
+    painter = Painter()
+    painter.proc.kill()
+    painter.proc.wait()
+    painter.submit("draw", "/nonexistent/a.png", P, r)     # no error, no SIGPIPE
+    start = time.perf_counter()
+    with pytest.raises(OutputError, match=r"^the picture worker \(pid \d+\) was "
+                                          r"killed by SIGKILL before it finished; "
+                                          r"pictures in /nonexistent may be missing$"):
+        painter.finish()
+    assert time.perf_counter() - start < 5
+
+
+def test_the_worker_ignores_ctrl_c(tmp_path, capfd):
+    """The terminal sends SIGINT to the worker too: it draws on, quietly."""
+    P, _, r = fabrics()
+    painter = Painter()
+    painter.submit("draw", str(tmp_path / "a.png"), P, r)
+    painter.proc.send_signal(signal.SIGINT)
+    painter.finish()
+    assert (tmp_path / "a.png").stat().st_size > 1000
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_run_and_its_restart_have_every_picture_after_close(tmp_path):
+    fab = jersey(2, 1, hold="top")
+
+    def simulation(out):
+        model = FullModel(SELF, fab, Material())
+        return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
+                          scene="hanging", output_every=2, checkpoint_every=4,
+                          verbose=False, snapshots=(0.002, 0.006),
+                          animation="a.gif")
+
+    pictures = {"hanging_t0.002s.png", "hanging_t0.006s.png",
+                "hanging_snapshots.png", "a.gif"}
+    whole = simulation(tmp_path / "whole")
+    whole.run(0.006)
+    assert whole.painter is None                        # finished by close
+    assert pictures <= set(os.listdir(tmp_path / "whole"))
+    first = simulation(tmp_path / "first")
+    first.run(0.004)
+    assert {"hanging_t0.002s.png", "hanging_snapshots.png"} <= set(
+        os.listdir(tmp_path / "first"))
+    again = simulation(tmp_path / "again")
+    again.restart(str(tmp_path / "first" / "checkpoint.h5"))
+    again.run(0.006)               # its GIF: frames after the restart, one here
+    assert pictures - {"a.gif"} <= set(os.listdir(tmp_path / "again"))
+    for name in ("hanging_t0.002s.png", "hanging_t0.006s.png",
+                 "hanging_snapshots.png"):         # the restart is exact
+        assert ((tmp_path / "again" / name).read_bytes()
+                == (tmp_path / "whole" / name).read_bytes())
