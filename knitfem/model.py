@@ -56,6 +56,14 @@ class Material:
     damping: float = 0.0
 
 
+def max_over_ranks(comm, local):
+    """The largest of every rank's ``local`` (collective; no message on one
+    rank, where a Newton convergence test calls it every iteration)."""
+    if comm.size == 1:
+        return local
+    return comm.tompi4py().allreduce(local, op=MPI.MAX)
+
+
 def applied_forces(system, v, Q):
     """Q = Q_g − c_d M v: gravity and damping of a mechanical system (collective).
 
@@ -151,8 +159,7 @@ class FullModel:
 
     def yarn_move(self, dx):
         """max |δε_i| of the local part ``dx`` (array) of an update (collective)."""
-        local = np.abs(dx).max() if dx.size else 0.0
-        return self.comm.tompi4py().allreduce(local, op=MPI.MAX)
+        return max_over_ranks(self.comm, np.abs(dx).max() if dx.size else 0.0)
 
     def gather_points(self, x):
         """All control points on rank 0 (None elsewhere), as open splines

@@ -20,7 +20,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from .assembly import create_aij, kron_identity
-from .model import EV_FORCES, applied_forces
+from .model import EV_FORCES, applied_forces, max_over_ranks
 from .options import KnitError
 from .volume import BoundingVolume
 
@@ -403,11 +403,8 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         whole of Γ δq would cost what the yarns do), else over all."""
         if self.sampled is None:
             return super().yarn_move(dq)
-        from mpi4py import MPI
-
         self.dq.getArray()[:] = dq
-        local = self.sampled.move(self._all(self.dq))
-        return self.comm.tompi4py().allreduce(local, op=MPI.MAX)
+        return max_over_ranks(self.comm, self.sampled.move(self._all(self.dq)))
 
     def elastic_energy(self, q):
         """E(Γq), or, sampled, Σ_{e∈S} ξ_e E_e: the energy this model's

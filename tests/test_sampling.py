@@ -43,13 +43,17 @@ def forces(model, alpha):
     return Q.getArray().copy()
 
 
-@pytest.mark.parametrize("kernels", ["compiled", "numpy"])
-def test_every_element_at_weight_one_is_the_exact_model(kernels):
+@pytest.mark.parametrize("kernels,fill", [("compiled", 0.0), ("numpy", 0.0),
+                                          ("compiled", 1.1)])
+def test_every_element_at_weight_one_is_the_exact_model(kernels, fill, monkeypatch):
+    """(Γ̃_S dense, and sparse with a fill no matrix reaches.)"""
+    monkeypatch.setattr(sampling, "DENSE_FILL", fill)
     full, red = models(SELF, jersey(3, 3, hold="top"))
     full.kernels = __import__("knitfem.kernels", fromlist=["yarn_kernels"]).yarn_kernels(
         full.elements, kernels)
     ne = full.elements.ne
     s = sampled(full, red, np.arange(ne), np.ones(ne))
+    assert isinstance(s.sampled.rows, np.ndarray) == (fill < 1)
     alpha = deformed(red)
     f, ref = forces(s, alpha), forces(red, alpha)
     assert np.abs(f - ref).max() <= 1e-12 * np.abs(ref).max()
