@@ -50,7 +50,7 @@ test-serial:
 	timeout 900 $(PYTEST) tests
 
 test-parallel:
-	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py tests/test_contacts.py \
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py \
 	  tests/test_frame.py tests/test_tube.py
 
 clean:

@@ -37,7 +37,8 @@ pulled 15x30 swatch in a 13x8 volume η is 0.2–3e3 m/s² at rest, the pull
 standing out by 800 times the median; after one step of 0.01 s it is
 2e3–3e4 m/s² everywhere, the volume's stiff response to gravity, and the
 pull stands out by less than 2), so the rule refines where η stands out. On a change the mixed
-model is rebuilt and the state carried over
+model is rebuilt (its volume part re-sampled for the new split, the set
+read from the cache when the split was seen before) and the state carried over
 by constrained mass-weighted least squares: q₂ minimises |Γ₂q − ε|²_M
 under g₂(q) = 0, by Gauss–Newton from the unconstrained fit, and q̇₂ the
 same for ε̇ under C₂(q₂) q̇ = 0,
@@ -266,7 +267,7 @@ class Adaptation:
         old = sim.system
         space = MixedSpace(old.comm, old.layout, self.weights,
                            self.weights.patch_mask(patches))
-        new = MixedModel(old.full, space, old.reduced)
+        new = MixedModel(old.full, space, old.reduced, old.rule)   # V re-sampled
         x, v = transfer(old, new, sim.x, sim.v)
         integrator = type(sim.integrator)(new, sim.integrator.dt)
         refined = np.argwhere(patches & ~self.patches).tolist()

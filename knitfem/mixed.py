@@ -31,6 +31,21 @@ independent on each patch); a patch left with a sliver of embedded points
 does not (a 15x30 jersey in a 13x8 volume with stitches 0:5, courses 0:3
 full: cond(M_mix) 1e19, against 3e8 once widened).
 
+Sampled mixed model (``sampling`` given: -knit_sampling sampled, the
+default). Split the yarn elements into those touching a full control point
+(T: exact, evaluated at ε = Γ_mix q) and those whose 4 points are all
+embedded (V, the volume part, which sees α only). V's sum is hyper-reduced
+as the reduced model's is (``sampling``, ECSW): trained on the same volume
+states with the candidates and the target sums restricted to V,
+
+    Σ_{e∈V} Γ_eᵀ Q_e ≈ Σ_{e∈S} ξ_e Γ_eᵀ Q_e,   S ⊂ V,  ξ ≥ 0,
+
+so the model's energy is E_T(Γ_mix q) + Σ_{e∈S} ξ_e E_e(Γ_e α), its forces
+and tangent that energy's. The tangent is Γ_mixᵀ K_T Γ_mix by PtAP, K_T over
+T's elements and the kept contacts only, plus the sampled dense α–α block,
+written into one matrix of fixed pattern (the union of the two). Each rank
+samples its own yarns' V; the α–α block is summed over the ranks.
+
 Volume control points that no embedded point depends on are no unknowns
 (every one of them when all points are full: Γ_mix is then the identity and
 the mixed model *is* the full model; with no full point it *is* the reduced
@@ -44,12 +59,16 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from . import bspline, constraints as cons
-from .assembly import create_aij, kron_identity
+from .assembly import ElementPattern, create_aij, kron_identity
+from .kernels import yarn_kernels
+from .model import EV_FORCES, EV_TANGENT, applied_forces
 from .options import KnitError
 from .pattern import SEGMENTS_PER_STITCH
-from .reduced import EV_PTAP, EmbeddedModel
+from .reduced import EV_PTAP, EmbeddedModel, sampling_options
+from .sampling import SampledElements, sampled_set
+from .yarn import YarnElements
 
-__all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "stitch_mask",
+__all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "trained", "stitch_mask",
            "parse_regions", "regions_from_options", "mixed_from_options"]
 
 EV_MIXED = PETSc.Log.Event("knitMixedSetUp")
@@ -191,6 +210,16 @@ def independent_rows(rows, rhs):
     return Vt[:rank], (U[:, :rank].T @ rhs) / S[:rank, None]
 
 
+def trained(tol):
+    """The sampling rule of -knit_sampling sampled: each rank's set drawn from
+    its embedded elements, trained to ``tol`` (or read from the cache, whose
+    key holds the subset)."""
+    def rule(full, embedding, subset):
+        return sampled_set(full, embedding, tol, subset)
+    rule.tol = tol
+    return rule
+
+
 class MixedModel(EmbeddedModel):
     """The mixed mechanical system of a ``FullModel`` through a ``MixedSpace``.
 
@@ -198,7 +227,10 @@ class MixedModel(EmbeddedModel):
     stiffness, constraints, rest_state, full_state, project, …) with
     q = [α; ε_F].
     ``reduced`` is the reduced model's ``Embedding`` of the same volume,
-    kept for the error indicator. Collective.
+    kept for the error indicator and needed by the sampling. ``sampling``,
+    a rule ``(full, embedding, subset) → (elements, weights, report)`` (e.g.
+    ``trained(tol)``), samples the embedded elements (module docstring);
+    None keeps every element (exact). Collective.
     """
 
     kind = "mixed"
@@ -208,7 +240,7 @@ class MixedModel(EmbeddedModel):
     def Gamma(self):
         return self.space.Gamma
 
-    def __init__(self, full, space, reduced=None):
+    def __init__(self, full, space, reduced=None, sampling=None):
         self.space, self.reduced = space, reduced
         G = space.Gamma
         self._embed(full, G, space.Gamma_scalar, "mixed_M_")
@@ -217,6 +249,13 @@ class MixedModel(EmbeddedModel):
         self.Qfull = G.createVecLeft()
         self.K = None
         self._proj = None
+        self.rule, self.sampling, self.sampled = None, None, None
+        if sampling is not None:
+            if reduced is None or full.barrier is not None:
+                raise KnitError("the sampled mixed model needs the reduced model's "
+                                "embedding and no bodies: use -knit_sampling exact")
+            with EV_MIXED:
+                self._sample(sampling)
 
     @property
     def nfull(self):
@@ -243,6 +282,7 @@ class MixedModel(EmbeddedModel):
         touches = np.zeros(holds.count, bool)
         np.logical_or.at(touches, hrow, space.full[holds.indices]
                          & (holds.values != 0))
+        self.keep_contact = keep_c
         self.contacts_kept = int(keep_c.sum())
         self.nonlinear_constraints = self.contacts_kept > 0
         # the kept rows among the full model's own (same order and owners)
@@ -312,6 +352,100 @@ class MixedModel(EmbeddedModel):
         out[:nk] = self.g_full.getArray(readonly=True)[self.kept_rows]
         out[nk:] = self.Cq.getArray(readonly=True)[nk:] - self.d_world
 
+    # -- sampling ------------------------------------------------------------
+    def _sample(self, rule):
+        """Split the rank's elements into T (touching a full point) and V (all
+        four embedded), sample V by ``rule``, and set up T's kernels, T's
+        tangent pattern (with the kept contacts), and the gather of α."""
+        from mpi4py import MPI
+
+        full, space, emb = self.full, self.space, self.reduced
+        el, comm = full.elements, self.comm.tompi4py()
+        self.rule = rule
+        inner = ~space.full[full.conn].any(axis=1)
+        volume_part, touching = np.flatnonzero(inner), np.flatnonzero(~inner)
+        elements, weights, report = rule(full, emb, volume_part)
+        self.sampled = (SampledElements(full, emb, elements, weights)
+                        if len(elements) else None)
+        self.touch = YarnElements(el.X, el.conn[touching], el.rho, el.EA, el.EI,
+                                  nq=len(el.weights))
+        self.touch.delta = el.delta
+        self.touch_kernels = yarn_kernels(self.touch, full.kernels.kind)
+        # K_T's pattern: T's elements and the kept contacts reaching our rows
+        lay, asm = self.layout, full.constraints
+        reach = asm.element_cols()
+        kept = self.keep_contact[asm.touching]
+        pattern = ElementPattern([full.conn[touching], reach[kept]], lay.cp_start,
+                                 lay.ncp_local)
+        indptr3, indices3, (slot_t, slot_c) = pattern.blocks3()
+        self.t_csr = (indptr3.astype(PETSc.IntType), indices3.astype(PETSc.IntType))
+        self.t_slot = np.ascontiguousarray(slot_t, dtype=np.int64)
+        self.t_values = np.zeros(len(indices3), dtype=PETSc.ScalarType)
+        slots = np.full((len(reach), 24, 24), -1, dtype=np.int64)
+        slots[kept] = slot_c
+        saved = asm.B                       # the full model's own stays its own
+        self.t_curvature = asm.curvature_operator(slots, len(indices3))
+        asm.B = saved
+        self.Kt = self.Kp = None
+        # every α on every rank (S's points reach any volume point)
+        NV = space.volume.size
+        self.acomp = (3 * space.volcol[space.alpha][:, None] + np.arange(3)).ravel()
+        self.alpha_seq = PETSc.Vec().createSeq(len(self.acomp), comm=PETSc.COMM_SELF)
+        q = self.M.createVecRight()
+        self.gather = PETSc.Scatter().create(
+            q, PETSc.IS().createGeneral(self.acomp.astype(PETSc.IntType),
+                                        comm=PETSc.COMM_SELF), self.alpha_seq, None)
+        q.destroy()
+        self.alpha_np = space.volume.flat.copy()
+        a0 = space.col_start
+        self.alpha_mine = np.flatnonzero((space.volcol >= a0)
+                                         & (space.volcol < a0 + space.na_local))
+        self.R = np.zeros((3 * NV, 3 * NV))
+        self.r_rows = (3 * self.alpha_mine[:, None] + np.arange(3)).ravel()
+        self.r_cols = (3 * space.alpha[:, None] + np.arange(3)).ravel()
+        self.sampling = dict(report, kind="sampled", tol=getattr(rule, "tol", None),
+                             elements=comm.allreduce(int(report["elements"])),
+                             of=comm.allreduce(int(report["of"])),
+                             exact=comm.allreduce(len(touching)),
+                             training_error=comm.allreduce(
+                                 float(report["training_error"]), op=MPI.MAX),
+                             held_out_error=comm.allreduce(
+                                 float(report["held_out_error"]), op=MPI.MAX),
+                             max_weight=comm.allreduce(
+                                 float(report["max_weight"]), op=MPI.MAX))
+        cached = comm.allreduce(bool(report.get("cached", False)), op=MPI.LAND)
+        self.sampling["source"] = (f"{'cached' if cached else 'trained'} "
+                                   f"{report.get('cache', '')}; "
+                                   f"{self.sampling['exact']} border elements exact")
+
+    def _alpha_all(self, q):
+        """Every volume point's α on this rank, (nvolume, 3); volume points
+        that are no unknowns keep their rest place (S gives them no weight)."""
+        self.gather.scatter(q, self.alpha_seq)
+        self.alpha_np[self.space.alpha] = \
+            self.alpha_seq.getArray(readonly=True).reshape(-1, 3)
+        return self.alpha_np
+
+    def _summed(self, a):
+        """a summed over the ranks (in place; collective)."""
+        if self.comm.size > 1:
+            from mpi4py import MPI
+
+            self.comm.tompi4py().Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
+        return a
+
+    def elastic_energy(self, q):
+        """E(Γ_mix q), or, sampled, E_T(Γ_mix q) + Σ_{e∈S} ξ_e E_e(Γ_e α): the
+        energy this model's forces derive from (collective)."""
+        if self.sampled is None and self.rule is None:
+            return super().elastic_energy(q)
+        P = self.full_state(q, self.eps).getArray(readonly=True).reshape(-1, 3)
+        e = self.touch.energy(P)
+        alpha = self._alpha_all(q)
+        if self.sampled is not None:
+            e += self.sampled.energy(alpha)
+        return self.comm.tompi4py().allreduce(e)
+
     # -- state ---------------------------------------------------------------
     def rest_state(self, turned=False):
         """q at rest: the kept volume control points and the full points' X;
@@ -324,12 +458,27 @@ class MixedModel(EmbeddedModel):
 
     # -- mechanics -----------------------------------------------------------
     def forces(self, q, qdot, Q):
-        """Γ_mixᵀ Q(Γ_mix q, Γ_mix q̇)."""
+        """Γ_mixᵀ Q(Γ_mix q, Γ_mix q̇); sampled, its elastic part is T's
+        through Γ_mixᵀ plus −Σ_{e∈S} ξ_e Γ_eᵀ ∇E_e on the rows of α."""
         G = self.space.Gamma
         G.mult(q, self.eps)
         G.mult(qdot, self.epsdot)
-        self.full.forces(self.eps, self.epsdot, self.Qfull)
-        G.multTranspose(self.Qfull, Q)
+        if self.rule is None:
+            self.full.forces(self.eps, self.epsdot, self.Qfull)
+            G.multTranspose(self.Qfull, Q)
+            return
+        with EV_FORCES:
+            applied_forces(self.full, self.epsdot, self.Qfull)
+            self.touch_kernels.add_gradient(
+                self.eps.getArray(readonly=True).reshape(-1, 3),
+                self.Qfull.getArray().reshape(-1, 3), -1.0)
+            G.multTranspose(self.Qfull, Q)
+            f = np.zeros((self.space.volume.size, 3))
+            alpha = self._alpha_all(q)
+            if self.sampled is not None:
+                self.sampled.add_forces(alpha, f)
+            self._summed(f)
+            Q.getArray().reshape(-1, 3)[:self.space.na_local] += f[self.alpha_mine]
 
     def stiffness(self, q, mu=None, weight=1.0, xref=None):
         """Γ_mixᵀ (K + w Σ μ_i ∇²g_i)(Γ_mix q) Γ_mix by PtAP, the symbolic
@@ -341,6 +490,8 @@ class MixedModel(EmbeddedModel):
                 mu.getArray(readonly=True)[:len(self.kept_rows)]
             mu = self.mu_full
         ref = None if xref is None else self.full_state(xref, self.eps_ref)
+        if self.rule is not None:
+            return self._sampled_stiffness(q, mu, weight, ref, xref)
         K = self.full.stiffness(self.full_state(q, self.eps), mu, weight, ref)
         with EV_PTAP:
             if self.K is None:
@@ -350,12 +501,87 @@ class MixedModel(EmbeddedModel):
                 K.PtAP(self.space.Gamma, self.K)
         return self.K
 
+    def _sampled_stiffness(self, q, mu, weight, ref, xref):
+        """Γ_mixᵀ K_T Γ_mix (PtAP, T's elements and the kept contacts'
+        curvature w Σ μ_i ∇²g_i) plus the sampled α–α block Σ_{e∈S} ξ_e Γ_eᵀ
+        ∇²E_e Γ_e (dense, summed over the ranks), in one matrix of fixed
+        pattern."""
+        x = self.full_state(q, self.eps).getArray(readonly=True).reshape(-1, 3)
+        xr = None if ref is None else ref.getArray(readonly=True).reshape(-1, 3)
+        with EV_TANGENT:
+            self.touch_kernels.hessian_values(x, self.t_slot, self.t_values, xr)
+            if mu is not None and weight:
+                asm = self.full.constraints
+                asm.gather_mu.scatter(mu, asm.mu)
+                self.t_values += weight * (self.t_curvature
+                                           @ asm.mu.getArray(readonly=True))
+        with EV_PTAP:
+            if self.Kt is None:
+                n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
+                self.Kt = create_aij(self.comm, (n, N), (n, N),
+                                     (*self.t_csr, self.t_values), bsize=3)
+                self.Kt.setOptionsPrefix("mixed_KT_")
+                self.Kp = self.Kt.PtAP(self.space.Gamma)
+            else:
+                self.Kt.setValuesCSR(*self.t_csr, self.t_values)
+                self.Kt.assemble()
+                self.Kt.PtAP(self.space.Gamma, self.Kp)
+            self.R.fill(0.0)
+            if self.sampled is not None:
+                aref = None if xref is None else self._alpha_all(xref).copy()
+                self.sampled.tangent(self._alpha_all(q), self.R, aref)
+            self._summed(self.R)
+            indptr, indices, kp = self.Kp.getValuesCSR()
+            if self.K is None:
+                self._union_pattern(indptr, indices)
+            values = self.K_values
+            values.fill(0.0)
+            values[self.kp_slot] = kp
+            values[self.r_slot] += self.R[np.ix_(self.r_rows, self.r_cols)].ravel()
+            if self.comm.size > 1 or self.K_shared is False:
+                self.K.setValuesCSR(*self.K_csr, values)
+            self.K.assemble()                  # a new state: factorisations redo
+        return self.K
+
+    def _union_pattern(self, indptr, indices):
+        """K's pattern: Γ_mixᵀ K_T Γ_mix's (local rows) and the dense α–α block
+        (the rank's α rows × every α column); where each one's values go."""
+        nrow, N = len(indptr) - 1, 3 * self.space.ncol
+        rows = np.repeat(np.arange(nrow, dtype=np.int64), np.diff(indptr))
+        kp_keys = rows * N + indices
+        na3 = 3 * self.space.na_local
+        r_keys = (np.arange(na3, dtype=np.int64)[:, None] * N
+                  + self.acomp[None, :]).ravel()
+        keys = np.union1d(kp_keys, r_keys)
+        self.kp_slot = np.searchsorted(keys, kp_keys)
+        self.r_slot = np.searchsorted(keys, r_keys)
+        r, c = np.divmod(keys, N)
+        self.K_csr = (np.searchsorted(r, np.arange(nrow + 1)).astype(PETSc.IntType),
+                      c.astype(PETSc.IntType))
+        self.K_values = np.zeros(len(keys), dtype=PETSc.ScalarType)
+        n = 3 * self.space.ncol_local
+        if self.comm.size > 1:
+            self.K = create_aij(self.comm, (n, N), (n, N),
+                                (*self.K_csr, self.K_values), bsize=3)
+            self.K_shared = False
+        else:
+            self.K = PETSc.Mat().createAIJWithArrays(
+                (N, N), (*self.K_csr, self.K_values), comm=self.comm)
+            self.K.setBlockSize(3)
+            self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+            self.K_shared = True
+        self.K.setOptionsPrefix("mixed_K_")
+
     def destroy(self):
         for A in (self.M, self.m, self.C, self.Qg, self.K, self.eps, self.eps_ref, self.epsdot,
                   self.Qfull, self._proj, self.eps0, self.product, self.mu_full,
                   self.g_full, self.Cq, self.dq, self.deps):
             if A is not None:
                 A.destroy()
+        if self.rule is not None:
+            for A in (self.Kt, self.Kp, self.gather, self.alpha_seq):
+                if A is not None:
+                    A.destroy()
 
 
 # -- regions -------------------------------------------------------------------
@@ -427,9 +653,16 @@ def regions_from_options(opts, fabric):
 
 def mixed_from_options(opts, full, embedding):
     """The mixed model of a full model, its regions from options, its volume
-    that of the reduced model's ``embedding`` (-knit_lod, -knit_volume)."""
+    that of the reduced model's ``embedding`` (-knit_lod, -knit_volume), its
+    volume part sampled unless -knit_sampling exact (or bodies) asks for
+    every element."""
+    kind, tol = sampling_options(opts)
+    if kind == "quadrature":
+        raise KnitError("-knit_sampling quadrature is the reduced model's only: "
+                        "use -knit_sampling sampled or exact with -knit_model mixed")
+    rule = trained(tol) if kind == "sampled" and not full.fabric.bodies else None
     weights = VolumeWeights(full.fabric, embedding.volume)
     mask = stitch_mask(full.fabric, regions_from_options(opts, full.fabric))
     mask = weights.patch_mask(weights.patches_of(mask))
     return MixedModel(full, MixedSpace(full.comm, full.layout, weights, mask),
-                      embedding)
+                      embedding, rule)

@@ -149,15 +149,21 @@ def training_states(volume, radius, seed, held_out=False):
     return np.array(states)
 
 
-def element_forces(full, embedding, elements, alpha):
+def element_forces(full, embedding, elements, alpha, subset=None):
     """c_e = Γ_eᵀ ∇E_e(Γ_e α) of ``elements`` as a dense (3 nvolume, ne) array,
-    and the exact b = Σ_e c_e over all the rank's elements."""
+    and the exact b = Σ_e c_e over all the rank's elements (over ``subset``,
+    element indices, when given)."""
     el = full.elements
     X = np.einsum("pk,pki->pi", embedding.vals, alpha[embedding.cols])
     grad = full.kernels.element_gradient(X)                  # (ne_all, 12)
     n = embedding.volume.size
     b = np.zeros((n, 3))
-    full_grad = el.assemble_vector(grad)
+    if subset is None:
+        full_grad = el.assemble_vector(grad)
+    else:
+        kept = np.zeros_like(grad)
+        kept[subset] = grad[subset]
+        full_grad = el.assemble_vector(kept)
     for i in range(3):
         b[:, i] = np.bincount(embedding.cols.ravel(), weights=(
             embedding.vals * full_grad[:, i:i + 1]).ravel(), minlength=n)
@@ -170,17 +176,18 @@ def element_forces(full, embedding, elements, alpha):
     return c.reshape(len(elements), -1).T, b.ravel()
 
 
-def candidates(full, embedding, rng):
-    """The rank's elements if at most CANDIDATES, else an equal share of each
-    volume patch (the patch of an element's first point)."""
-    ne = full.elements.ne
-    if ne <= CANDIDATES:
-        return np.arange(ne)
-    first = embedding.cols[full.elements.conn[:, 0]]
+def candidates(full, embedding, rng, subset=None):
+    """The rank's elements (those of ``subset`` when given) if at most
+    CANDIDATES, else an equal share of each volume patch (the patch of an
+    element's first point)."""
+    pool = np.arange(full.elements.ne) if subset is None else np.asarray(subset)
+    if len(pool) <= CANDIDATES:
+        return pool
+    first = embedding.cols[full.elements.conn[pool, 0]]
     _, patch = np.unique(first, axis=0, return_inverse=True)
     patch = patch.ravel()
     share = -(-CANDIDATES // (patch.max() + 1))
-    chosen = [rng.permutation(np.flatnonzero(patch == p))[:share]
+    chosen = [pool[rng.permutation(np.flatnonzero(patch == p))[:share]]
               for p in range(patch.max() + 1)]
     return np.sort(np.concatenate(chosen))
 
@@ -212,19 +219,20 @@ def greedy_nnls(A, b, tol, most=None):
     return out, np.linalg.norm(r) / norm_b
 
 
-def fit_system(full, embedding, elements, states):
+def fit_system(full, embedding, elements, states, subset=None):
     """(A, b): the projected forces c_se of ``elements`` in the columns of A
-    and their exact sum b, snapshot by snapshot scaled to ‖b_s‖ = 1."""
-    blocks = [element_forces(full, embedding, elements, a) for a in states]
+    and their exact sum b (over ``subset`` when given), snapshot by snapshot
+    scaled to ‖b_s‖ = 1."""
+    blocks = [element_forces(full, embedding, elements, a, subset) for a in states]
     scale = [1.0 / max(np.linalg.norm(b), 1e-300) for _, b in blocks]
     A = np.vstack([c * s for (c, _), s in zip(blocks, scale)])
     b = np.concatenate([bb * s for (_, bb), s in zip(blocks, scale)])
     return A, b
 
 
-def relative_error(full, embedding, elements, weights, states):
-    """‖Σ_e ξ_e c_·e − b‖ / ‖b‖ over ``states``."""
-    A, b = fit_system(full, embedding, elements, states)
+def relative_error(full, embedding, elements, weights, states, subset=None):
+    """‖Σ_e ξ_e c_·e − b‖ / ‖b‖ over ``states`` (b over ``subset``)."""
+    A, b = fit_system(full, embedding, elements, states, subset)
     return float(np.linalg.norm(A @ weights - b) / np.linalg.norm(b))
 
 
@@ -259,33 +267,46 @@ def quadrature_set(full, embedding, stitches=2, seed=0):
     return elements, weights, report
 
 
-def train(full, embedding, tol, seed=0):
+def train(full, embedding, tol, seed=0, subset=None):
     """(elements, weights, report) of the rank's sampled set: to ``tol``, or
     as many elements as the volume has coordinates (3 n), whichever comes
     first (ECSW's sets scale with the reduced unknowns; beyond them the
-    greedy fit's cost grows faster than its error falls)."""
+    greedy fit's cost grows faster than its error falls). With ``subset``
+    (element indices) the set is drawn from those elements and fits their
+    sum only (the mixed model's embedded elements); an empty one is an
+    empty set."""
     t0 = time.perf_counter()
+    of = full.elements.ne if subset is None else len(subset)
+    if subset is not None and not len(subset):
+        return np.zeros(0, dtype=int), np.zeros(0), dict(
+            elements=0, of=0, candidates=0, max_weight=0.0, training_error=0.0,
+            held_out_error=0.0, tol=tol, training_s=time.perf_counter() - t0)
     rng = np.random.default_rng(seed)
-    cand = candidates(full, embedding, rng)
+    cand = candidates(full, embedding, rng, subset)
     radius = full.fabric.radius
     vol = embedding.volume
-    A, b = fit_system(full, embedding, cand, training_states(vol, radius, seed))
+    A, b = fit_system(full, embedding, cand, training_states(vol, radius, seed),
+                      subset)
     xi, err = greedy_nnls(A, b, tol, most=3 * vol.size)
     S = np.flatnonzero(xi)
     held = relative_error(full, embedding, cand[S], xi[S],
-                          training_states(vol, radius, seed, held_out=True))
-    report = dict(elements=int(len(S)), of=int(full.elements.ne),
+                          training_states(vol, radius, seed, held_out=True), subset)
+    report = dict(elements=int(len(S)), of=int(of),
                   candidates=int(len(cand)), max_weight=float(xi.max(initial=0.0)),
                   training_error=float(err), held_out_error=float(held),
                   tol=tol, training_s=time.perf_counter() - t0)
     return cand[S], xi[S], report
 
 
-def cache_key(full, embedding, tol):
-    """SHA-256 of everything the rank's sampled set depends on."""
+def cache_key(full, embedding, tol, subset=None):
+    """SHA-256 of everything the rank's sampled set depends on (and the
+    element ``subset`` it is drawn from, when given)."""
     el, h = full.elements, hashlib.sha256()
     for a in (el.X, el.conn, embedding.volume.flat, embedding.cols, embedding.vals):
         h.update(np.ascontiguousarray(a).tobytes())
+    if subset is not None:
+        h.update(b"subset")
+        h.update(np.ascontiguousarray(subset, dtype=np.int64).tobytes())
     h.update(repr((el.EA, el.EI, len(el.weights), tol, VERSION,
                    full.kernels.kind)).encode())
     return h.hexdigest()
@@ -297,13 +318,14 @@ def cache_dir():
     return os.path.join(base, "knitfem", "sampling")
 
 
-def sampled_set(full, embedding, tol):
-    """(elements, weights, report) of the rank's sampled set: from the cache
-    when it holds this problem's, else trained and cached (a cache that
-    cannot be written is only not used)."""
+def sampled_set(full, embedding, tol, subset=None):
+    """(elements, weights, report) of the rank's sampled set (drawn from the
+    elements ``subset`` when given, see ``train``): from the cache when it
+    holds this problem's, else trained and cached (a cache that cannot be
+    written is only not used)."""
     from .io import atomic_write
 
-    path = os.path.join(cache_dir(), cache_key(full, embedding, tol) + ".npz")
+    path = os.path.join(cache_dir(), cache_key(full, embedding, tol, subset) + ".npz")
     try:
         with np.load(path) as f:
             report = dict(zip(f["keys"].tolist(), f["values"].tolist()))
@@ -312,7 +334,7 @@ def sampled_set(full, embedding, tol):
             return f["elements"], f["weights"], report
     except (OSError, KeyError, ValueError, zipfile.BadZipFile):
         pass                          # none, or unreadable: trained again
-    elements, weights, report = train(full, embedding, tol)
+    elements, weights, report = train(full, embedding, tol, subset=subset)
     keys = [k for k, v in report.items() if isinstance(v, (int, float))]
     try:
         os.makedirs(cache_dir(), exist_ok=True)
