@@ -31,8 +31,8 @@ independent on each patch); a patch left with a sliver of embedded points
 does not (a 15x30 jersey in a 13x8 volume with stitches 0:5, courses 0:3
 full: cond(M_mix) 1e19, against 3e8 once widened).
 
-Sampled mixed model (``sampling`` given: -knit_sampling sampled, the
-default). Split the yarn elements into those touching a full control point
+Sampled mixed model (``sampling`` given: -knit_sampling sampled; not the
+default, see ``mixed_from_options``). Split the yarn elements into those touching a full control point
 (T: exact, evaluated at ε = Γ_mix q) and those whose 4 points are all
 embedded (V, the volume part, which sees α only). V's sum is hyper-reduced
 as the reduced model's is (``sampling``, ECSW): trained on the same volume
@@ -654,9 +654,12 @@ def regions_from_options(opts, fabric):
 def mixed_from_options(opts, full, embedding):
     """The mixed model of a full model, its regions from options, its volume
     that of the reduced model's ``embedding`` (-knit_lod, -knit_volume), its
-    volume part sampled unless -knit_sampling exact (or bodies) asks for
-    every element."""
-    kind, tol = sampling_options(opts)
+    volume part sampled when -knit_sampling sampled asks for it (and there
+    are no bodies). Not by default: on the pulled 15×30 in a 13×8 volume the
+    sampled set reached its cap (639 of 2 894 embedded elements, force error
+    0.017), a Newton iteration cost 108 ms against 133, and the pulled corner
+    dropped 10 % further in 0.02 s."""
+    kind, tol = sampling_options(opts, default="exact")
     if kind == "quadrature":
         raise KnitError("-knit_sampling quadrature is the reduced model's only: "
                         "use -knit_sampling sampled or exact with -knit_model mixed")

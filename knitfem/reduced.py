@@ -142,11 +142,13 @@ def volume_options(opts):
     return lod, path
 
 
-def sampling_options(opts):
-    """(kind, tolerance) from -knit_sampling exact|sampled, -knit_sampling_tol."""
-    kind = opts.getChoice("sampling", "sampled", ("sampled", "quadrature", "exact"),
-                          "reduced model's yarn forces: a trained weighted sample "
-                          "of the yarn elements (ECSW), two stitches a volume patch "
+def sampling_options(opts, default="sampled"):
+    """(kind, tolerance) from -knit_sampling exact|sampled, -knit_sampling_tol
+    (``default``: the kind when the option is not given)."""
+    kind = opts.getChoice("sampling", default, ("sampled", "quadrature", "exact"),
+                          "reduced model's yarn forces (and, asked for, the mixed "
+                          "model's volume part): a trained weighted sample of the "
+                          "yarn elements (ECSW), two stitches a volume patch "
                           "weighted by what they stand for, or every element")
     tol = opts.getReal("sampling_tol", 2e-3, "relative force error the sampled "
                        "set is trained to", positive=True)

@@ -225,16 +225,19 @@ serial_only = pytest.mark.skipif(COMM.size > 1, reason="runs knitfem in subproce
 
 
 @serial_only
-def test_adaptive_run_writes_indicator(tmp_path):
+@pytest.mark.parametrize("sampling", ["exact", "sampled"])
+def test_adaptive_run_writes_indicator(tmp_path, sampling):
     """knitfem run -knit_scene pulled -knit_model mixed -knit_adapt: the pulled
     patch is refined at the start, logged, and the indicator is in
-    summary.json and indicator.png."""
+    summary.json and indicator.png (the volume part exact, and sampled: each
+    new split sampled again)."""
     import json
 
     p = knitfem_run("-knit_scene", "pulled", "-knit_rows", "6", "-knit_cols", "9",
                     "-knit_lod", "6,5", "-knit_model", "mixed", "-knit_adapt",
                     "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.02",
-                    "-knit_snapshots", "0.02", "-o", str(tmp_path))
+                    "-knit_snapshots", "0.02", "-knit_sampling", sampling,
+                    "-o", str(tmp_path))
     assert p.returncode == 0, p.stdout + p.stderr
     assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout
     rec = json.loads((tmp_path / "summary.json").read_text())
