@@ -447,6 +447,10 @@ def run(comm):
             return stop.code
         if adapt is not None:
             adapt.report(sim, out.path)
+        for prefix, icntl14 in rec["mumps_workspace_raised"].items():
+            PETSc.Sys.Print(f"knitfem run: note: MUMPS ran out of workspace and was "
+                            f"given more (-{prefix}mat_mumps_icntl_14 {icntl14} "
+                            f"starts there)")
         if rec["linear_failures"]:
             PETSc.Sys.Print(f"knitfem run: note: {rec['linear_failures']} linear solves "
                             f"did not converge and their steps were retried shorter "

@@ -32,6 +32,7 @@ from petsc4py import PETSc
 
 from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
+from solvers.saddle import WORKSPACE_RAISED
 
 from . import bspline, interrupts, io, output
 from .painter import Painter
@@ -571,6 +572,7 @@ class Simulation:
                    adaptive=bool(control is not None and control.adaptive),
                    rejected_steps=self.stats["rejected"],
                    linear_failures=self.stats["linear_failures"],
+                   mumps_workspace_raised=dict(WORKSPACE_RAISED),
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],

@@ -330,12 +330,17 @@ def ksp_failure(ksp):
         f"-{prefix}ksp_max_it or change -{prefix}pc_type", reason in CURABLE)
 
 
+WORKSPACE_RAISED = {}       # options prefix → the ICNTL(14) MUMPS was given
+
+
 def failure_or_retry(ksp, err=None):
     """After a failed solve with ``ksp``, raised as the PETSc error ``err`` or
     only left in its reason (collective).
 
     MUMPS out of workspace (INFOG(1) = −8 or −9): ICNTL(14) is doubled (up to
-    6400 %) and None is returned, the caller then repeats the solve. Anything
+    6400 %), recorded in ``WORKSPACE_RAISED`` (said at the end of a run, not
+    in the middle of its progress lines) and None is returned, the caller
+    then repeats the solve. Anything
     else: the ``SolverFailure`` naming the solver, its reason and the option
     to change.
     """
@@ -348,9 +353,7 @@ def failure_or_retry(ksp, err=None):
             if icntl14 < MUMPS_WORKSPACE_MAX:
                 new = min(max(2 * icntl14, 100), MUMPS_WORKSPACE_MAX)
                 refactor(ksp, new)
-                PETSc.Sys.Print(f"MUMPS workspace too small (INFOG(1) = {info}): "
-                                f"retrying with -{prefix}mat_mumps_icntl_14 {new}",
-                                comm=ksp.getComm())
+                WORKSPACE_RAISED[prefix] = new
                 return None
             return SolverFailure(
                 f"MUMPS factorisation out of workspace (INFOG(1) = {info}) even "

@@ -7,7 +7,8 @@ from petsc4py import PETSc
 
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric
-from solvers.saddle import SaddlePoint, SolverFailure, saddle_ksp, solve_saddle
+from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, saddle_ksp,
+                            solve_saddle)
 
 COMM = PETSc.COMM_WORLD
 PETSc.Log.begin()                 # event counts
@@ -147,4 +148,5 @@ def test_workspace_retried(model, options):
     _, res = solve(saddle, ksp)
     assert res < 1e-6
     assert PETSc.Options().getInt("t_ws_mat_mumps_icntl_14") >= 100
+    assert WORKSPACE_RAISED["t_ws_"] >= 100         # said at the run's end
     saddle.destroy()
