@@ -269,7 +269,7 @@ class Adaptation:
                            self.weights.patch_mask(patches))
         new = MixedModel(old.full, space, old.reduced, old.rule)   # V re-sampled
         x, v = transfer(old, new, sim.x, sim.v)
-        integrator = type(sim.integrator)(new, sim.integrator.dt)
+        integrator = sim.integrator.like(new)
         refined = np.argwhere(patches & ~self.patches).tolist()
         coarsened = np.argwhere(~patches & self.patches).tolist()
         n_old = old.M.getSize()[0] + old.C.getSize()[0]

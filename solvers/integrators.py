@@ -124,6 +124,11 @@ class SymplecticEuler:
     def dt(self):
         return self.control.dt
 
+    def like(self, system):
+        """This integrator, its step control and its settings, for another
+        system (an adaptive run's new mixed model)."""
+        return type(self)(system, self.dt, self.control)
+
     def state(self):
         return self.control.state()
 
@@ -285,6 +290,16 @@ not the default.
     def dt(self):
         """The fixed step, or the next trial step under step control."""
         return self.control.dt
+
+    def like(self, system):
+        """This integrator, its step control and its settings (the Newton
+        matrix, ρ∞), for another system (an adaptive run's new mixed model);
+        it starts as from a first step."""
+        return type(self)(system, self.dt, self.control, **self.settings())
+
+    def settings(self):
+        """The constructor's keyword arguments this integrator was made with."""
+        return dict(tangent=self.tangent)
 
     # -- the method: subclasses ----------------------------------------------
     def coefficients(self, h):
@@ -591,6 +606,9 @@ class GeneralizedAlpha(NewtonStepper):
         self.started = False
         self.c_error = self.beta - 1.0 / 6.0 + 0.5 * (self.alpha_m - self.alpha_f)
         self.history = PositionHistory(2, self.c_error)
+
+    def settings(self):
+        return dict(super().settings(), rho_inf=self.rho_inf)
 
     def coefficients(self, h):
         am, af, g, b = self.alpha_m, self.alpha_f, self.gamma, self.beta

@@ -232,3 +232,19 @@ def test_mip_newton_reaches_the_reduced_models_step():
         integ.step(0.0, q, v)
         out[tangent] = gather(COMM, red.full_state(q))
     assert np.abs(out["mip"] - out["exact"]).max() < 1e-12
+
+
+@pytest.mark.parametrize("cls,kw", [(BackwardEuler, dict(tangent="mip")), (BDF2, {}),
+                                    (GeneralizedAlpha, dict(rho_inf=0.8, tangent="mip"))])
+def test_an_integrator_like_another_keeps_its_control_and_settings(cls, kw):
+    """What an adaptive run's switch gives its new model: the same step
+    control (error-controlled stays error-controlled) and settings."""
+    fab = jersey(2, 2, hold="top")
+    control = StepControl(1e-3, adaptive=True, rtol=1e-4, atol=1e-6)
+    integ = cls(FullModel(COMM, fab, Material()), 1e-3, control, **kw)
+    other = FullModel(COMM, fab, Material())
+    new = integ.like(other)
+    assert type(new) is cls and new.system is other and new.control is control
+    assert new.settings() == integ.settings()
+    assert new.tangent == kw.get("tangent", "exact")
+    assert getattr(new, "rho_inf", None) == kw.get("rho_inf", getattr(integ, "rho_inf", None))

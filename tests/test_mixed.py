@@ -242,6 +242,7 @@ def test_adaptive_run_writes_indicator(tmp_path, sampling):
     assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout
     rec = json.loads((tmp_path / "summary.json").read_text())
     assert rec["model"] == "mixed" and rec["adapt"]["events"][0]["refined"] == [[1, 0]]
+    assert rec["adaptive"] and rec["integrator"] == "bdf2"   # its control kept
     eta = np.array(rec["indicator_last"]["eta"])
     assert eta.shape == (3, 2) and np.all(eta > 0)
     assert rec["adapt"]["unknowns_max"] == rec["unknowns"] < 3 * 6 * 75 * 0.5
