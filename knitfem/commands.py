@@ -289,10 +289,11 @@ def integrator_from_options(opts):
                            nonnegative=True)
     if rho_inf > 1:
         raise KnitError(f"-knit_rho_inf {rho_inf:g}: expected a value in [0, 1]")
-    tangent = opts.getChoice("tangent", "exact", ("exact", "mip"),
-                             "Newton matrix: the exact one, or its axial force "
-                             "linearised from the last iterate (mixed integration "
-                             "point: fewer iterations on large steps from rest)")
+    tangent = opts.getChoice("tangent", "auto", ("auto", "exact", "mip"),
+                             "Newton matrix: its axial force linearised from the "
+                             "last iterate (mixed integration point) on a first "
+                             "step, where the predictor knows no velocity, and "
+                             "exact after; always exact; always MIP")
     if method == "symplectic" and dt == 0:
         raise KnitError("-knit_integrator symplectic: an explicit step needs a "
                         "fixed -knit_dt (say 5e-7)")

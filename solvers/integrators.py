@@ -200,25 +200,26 @@ class NewtonStepper:
 
         A = σ w κ K(ε_f) + (1 + σ w c_d) M + κ Σ_i μ_i ∇²g_i,
 
-With ``tangent="mip"`` (``-knit_tangent mip``), K's axial force is the one
-linearised from the last Newton iterate (the mixed integration point Newton of Magisano,
-Leonetti & Garcea, CMAME 313, 2017; ``yarn.stretch_terms``): the Newton
-iteration of the stretch with its axial force an independent unknown at each
-Gauss point, condensed, so the pattern, the residual and the solution are
-those of the displacement form, but a Newton update that turns a stiff yarn
-no longer gives the next tangent the axial force of the linearised turn's
-stretch. The first iteration of a step linearises from ε_n; a MIP solve
-that fails is solved again with the exact matrix. The default,
-``tangent="exact"``, is A = ∂F/∂z itself. MIP pays on large steps from
-rest (hanging 20×40, first step of 1e-2 s: 18 Newton iterations exact, 6
-MIP, the same state) but not once the knit moves under error control
-(hanging 7×7, 0.3 s, BDF2: 2 567 iterations exact, 4 257 MIP), so it is
-not the default.
-
     assembled as one AIJ matrix (or dense for the reduced model on one rank)
     and solved by ``-<kind>_ksp_type``, ``-<kind>_pc_type`` … (MUMPS LDLᵀ by
     default). ``-<kind>_snes_type ksponly`` makes the step linearly implicit
     (one Newton iteration).
+
+    The Newton matrix (``tangent``). With "mip" K's axial force is the one
+    linearised from the last Newton iterate (the mixed integration point
+    Newton of Magisano, Leonetti & Garcea, CMAME 313, 2017;
+    ``yarn.stretch_terms``): the Newton iteration of the stretch with its
+    axial force an unknown of its own at each Gauss point, condensed, so the
+    pattern, the residual and the solution are those of the displacement
+    form, but an update that turns a stiff yarn no longer gives the next
+    matrix the axial force of the linearised turn's stretch. The first
+    iteration of a step linearises from ε_n; a MIP solve that fails is solved
+    again with the exact matrix. "exact" (the default here) is A = ∂F/∂z
+    itself. "auto" (the command line's default) is MIP on a first step, where
+    the predictor knows no velocity, and exact after: MIP pays on a large
+    step from rest (hanging 20×40, 1e-2 s: 18 Newton iterations exact, 6 MIP,
+    the same state) but not once the knit moves (hanging 7×7, 0.3 s, BDF2:
+    2 567 exact, 4 257 MIP, 2 533 auto).
 
     Why not PETSc's TS: TSALPHA2 and TSBDF integrate every component of
     their state, so the multipliers λ of the index-3 rows C ε = d would be
@@ -236,13 +237,14 @@ not the default.
 
     order = 1
     newton_ctol = 0.0
-    TANGENTS = ("mip", "exact")
+    TANGENTS = ("auto", "mip", "exact")
 
     def __init__(self, system, dt, control=None, tangent="exact"):
         if tangent not in self.TANGENTS:
             raise ValueError(f"tangent {tangent!r}: use one of {', '.join(self.TANGENTS)}")
         self.tangent = tangent
         self.mip = False                    # the solve now running is MIP
+        self.steps = 0                      # accepted steps (0: no history yet)
         self.system = system
         self.control = control or StepControl(dt)
         self.prefix = prefix = f"{system.kind}_"
@@ -391,7 +393,8 @@ not the default.
             floor = 1e-14 * s.total_mass * s.fabric.radius / self.kappa
             self.snes.setTolerances(atol=max(1e-12 * scale, floor))
         # a MIP Newton that fails is tried again with the exact matrix
-        for self.mip in (True, False) if self.tangent == "mip" else (False,):
+        mip = self.tangent == "mip" or (self.tangent == "auto" and not self.steps)
+        for self.mip in (True, False) if mip else (False,):
             self._newton(h, stats)
             if self.snes.getConvergedReason() > 0:
                 break
@@ -421,6 +424,7 @@ not the default.
             stats["ksp"] += self.snes.getLinearSolveIterations()
 
     def _commit(self, x, v, h):
+        self.steps += 1
         self.accepted(h)
         if self.control.adaptive:
             self.history.push(self.xe.getArray(readonly=True), h)
@@ -511,6 +515,7 @@ not the default.
         if "history_t" in st:
             self.history.set_state(st)
         self.lam.getArray()[:] = st["lam"]
+        self.steps = max(self.steps, 1)      # a checkpoint follows a step
 
 
 class BackwardEuler(NewtonStepper):

@@ -204,19 +204,24 @@ def test_mip_newton_takes_the_first_step_from_rest_in_fewer_iterations():
     reaches the state of the exact one, in under half its iterations, on a
     jersey released from rest at a large step."""
     out = {}
-    for tangent in ("exact", "mip"):
+    for tangent in ("exact", "mip", "auto"):
         model = FullModel(COMM, jersey(6, 12, hold="top"), Material())
         integ = BackwardEuler(model, 1e-2, tangent=tangent)
         x, v = model.rest_state(), model.rest_state()
         v.zeroEntries()
-        out[tangent] = integ.step(0.0, x, v)["newton"], gather(COMM, x)
-    (n_exact, x_exact), (n_mip, x_mip) = out["exact"], out["mip"]
+        first = integ.step(0.0, x, v)["newton"]
+        out[tangent] = first, gather(COMM, x), integ.step(1e-2, x, v)["newton"]
+    (n_exact, x_exact, then_exact), (n_mip, x_mip, _) = out["exact"], out["mip"]
     assert np.abs(x_mip - x_exact).max() < 1e-9 * model.fabric.radius
     assert 2 * n_mip < n_exact
+    # auto: MIP on the first step (no velocity history), exact after
+    n_auto, x_auto, then_auto = out["auto"]
+    assert n_auto == n_mip and np.array_equal(x_auto, x_mip)
+    assert then_auto == then_exact
 
 
 def test_unknown_tangent_is_refused():
-    with pytest.raises(ValueError, match="use one of mip, exact"):
+    with pytest.raises(ValueError, match="use one of auto, mip, exact"):
         BackwardEuler(FullModel(COMM, jersey(), Material()), 1e-2, tangent="secant")
 
 
