@@ -113,6 +113,7 @@ def main(fd):
     for sig in STOPS:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)
+    os.nice(19)              # a core the ranks leave idle; never one they use
     from . import io
 
     try:
