@@ -293,3 +293,16 @@ def test_linear_solves_that_failed_are_counted_and_said(tmp_path):
     rec = json.load(open(tmp_path / "summary.json"))
     assert rec["linear_failures"] > 0 and rec["ksp_iterations"] > 10000
     assert f"note: {rec['linear_failures']} linear solves did not converge" in p.stdout
+
+
+@pytest.mark.parametrize("env,local", [
+    ({}, True),                                                        # a singleton
+    ({"OMPI_COMM_WORLD_SIZE": "2", "OMPI_COMM_WORLD_LOCAL_SIZE": "2",
+      "PMIX_RANK": "0"}, True),                                        # mpirun, one machine
+    ({"OMPI_COMM_WORLD_SIZE": "4", "OMPI_COMM_WORLD_LOCAL_SIZE": "2",
+      "PMIX_RANK": "0"}, False),                                       # two machines
+    ({"PMIX_RANK": "3"}, False)])                                      # another launcher
+def test_ob1_messaging_only_when_every_rank_is_here(env, local):
+    from knitfem import _all_ranks_local
+
+    assert _all_ranks_local(env) is local
