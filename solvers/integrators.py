@@ -4,7 +4,8 @@
 
 A *system* (``knitfem.model.FullModel``, ``knitfem.reduced.ReducedModel``,
 ``knitfem.mixed.MixedModel``) supplies M, ``forces(x, v, Q)``,
-``stiffness(x, μ, w)`` (K = ∂²E/∂ε² + w Σ μ_i ∇²g_i), the constraints
+``stiffness(x, μ, w, xref)`` (K = ∂²E/∂ε² + w Σ μ_i ∇²g_i; with a state
+``xref``, its axial force linearised from xref: the MIP matrix), the constraints
 ``constraint_residual(x, g)`` and ``constraint_jacobian(x)`` (C, a fixed
 pattern; ``nonlinear_constraints`` says whether it depends on ε) and
 ``material.damping`` c_d (Q_d = −c_d M ε̇). The integrators never see a yarn.
@@ -15,8 +16,10 @@ solve, so constraint drift stays at the Newton tolerance.
 
 Every integrator has ``step(t, ε, ε̇, t_stop)`` (one accepted step, in place;
 returns the step ``dt`` taken and iteration counts), ``dt`` (the next step)
-and ``state()``/``set_state()`` for checkpoints. Step sizes are chosen by a
-``solvers.stepping.StepControl``: fixed, or by a local error estimate.
+and ``state()``/``set_state()`` for checkpoints, and ``like(system)``
+(itself, with its step control and settings, for another system). Step
+sizes are chosen by a ``solvers.stepping.StepControl``: fixed, or by a
+local error estimate.
 """
 
 import numpy as np
