@@ -65,7 +65,7 @@ from .model import EV_FORCES, EV_TANGENT, applied_forces
 from .options import KnitError
 from .pattern import SEGMENTS_PER_STITCH
 from .reduced import EV_PTAP, EmbeddedModel, sampling_options
-from .sampling import SampledElements, sampled_set
+from .sampling import SampledElements, over_ranks, sampled_set
 from .yarn import YarnElements
 
 __all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "trained", "stitch_mask",
@@ -403,16 +403,9 @@ class MixedModel(EmbeddedModel):
         self.R = np.zeros((3 * NV, 3 * NV))
         self.r_rows = (3 * self.alpha_mine[:, None] + np.arange(3)).ravel()
         self.r_cols = (3 * space.alpha[:, None] + np.arange(3)).ravel()
-        self.sampling = dict(report, kind="sampled", tol=getattr(rule, "tol", None),
-                             elements=comm.allreduce(int(report["elements"])),
-                             of=comm.allreduce(int(report["of"])),
-                             exact=comm.allreduce(len(touching)),
-                             training_error=comm.allreduce(
-                                 float(report["training_error"]), op=MPI.MAX),
-                             held_out_error=comm.allreduce(
-                                 float(report["held_out_error"]), op=MPI.MAX),
-                             max_weight=comm.allreduce(
-                                 float(report["max_weight"]), op=MPI.MAX))
+        self.sampling = dict(over_ranks(self.comm, report), kind="sampled",
+                             tol=getattr(rule, "tol", None),
+                             exact=comm.allreduce(len(touching)))
         cached = comm.allreduce(bool(report.get("cached", False)), op=MPI.LAND)
         self.sampling["source"] = (f"{'cached' if cached else 'trained'} "
                                    f"{report.get('cache', '')}; "
@@ -425,14 +418,6 @@ class MixedModel(EmbeddedModel):
         self.alpha_np[self.space.alpha] = \
             self.alpha_seq.getArray(readonly=True).reshape(-1, 3)
         return self.alpha_np
-
-    def _summed(self, a):
-        """a summed over the ranks (in place; collective)."""
-        if self.comm.size > 1:
-            from mpi4py import MPI
-
-            self.comm.tompi4py().Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
-        return a
 
     def elastic_energy(self, q):
         """E(Γ_mix q), or, sampled, E_T(Γ_mix q) + Σ_{e∈S} ξ_e E_e(Γ_e α): the

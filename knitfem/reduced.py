@@ -159,7 +159,7 @@ def reduced_from_options(opts, full, embedding):
     """The ReducedModel of -knit_sampling: sampled (the set trained or read
     from the cache, said in one line) unless exact is asked for or bodies
     need every yarn point."""
-    from .sampling import SampledElements, quadrature_set, sampled_set
+    from .sampling import SampledElements, over_ranks, quadrature_set, sampled_set
 
     kind, tol = sampling_options(opts)
     if kind == "exact" or full.fabric.bodies:
@@ -170,16 +170,9 @@ def reduced_from_options(opts, full, embedding):
     else:
         elements, weights, report = sampled_set(full, embedding, tol)
         report["source"] = f"{'cached' if report['cached'] else 'trained'} {report['cache']}"
-    from mpi4py import MPI
-
-    comm = full.comm.tompi4py()
-    total = comm.allreduce(report["elements"]), comm.allreduce(report["of"])
-    errors = (comm.allreduce(report["training_error"], op=MPI.MAX),
-              comm.allreduce(report["held_out_error"], op=MPI.MAX))
     model = ReducedModel(full, embedding,
                          SampledElements(full, embedding, elements, weights))
-    model.sampling = dict(report, kind=kind, elements=total[0], of=total[1],
-                          training_error=errors[0], held_out_error=errors[1])
+    model.sampling = dict(over_ranks(full.comm, report), kind=kind)
     return model
 
 
@@ -235,6 +228,14 @@ class EmbeddedModel:
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
         self.dq, self.deps = G.createVecRight(), G.createVecLeft()
         self.eps_ref = G.createVecLeft()         # Γ q of a MIP reference
+
+    def _summed(self, a):
+        """a summed over the ranks (in place; collective)."""
+        if self.comm.size > 1:
+            from mpi4py import MPI
+
+            self.comm.tompi4py().Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
+        return a
 
     def full_state(self, q, out=None):
         """ε = Γ q."""
@@ -391,14 +392,6 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             return alpha.getArray(readonly=True).reshape(-1, 3)
         self.gather.scatter(alpha, self.alpha_all)
         return self.alpha_all.getArray(readonly=True).reshape(-1, 3)
-
-    def _summed(self, a):
-        """a summed over the ranks (in place; collective)."""
-        if self.comm.size > 1:
-            from mpi4py import MPI
-
-            self.comm.tompi4py().Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
-        return a
 
     def yarn_move(self, dq):
         """max |Γ δq| over the yarn points that S touches when sampled (the

@@ -50,7 +50,7 @@ from .kernels import yarn_kernels
 from .reduced import GroupedTangent
 from .yarn import YarnElements
 
-__all__ = ["SampledElements", "sampled_set", "quadrature_set", "VERSION"]
+__all__ = ["SampledElements", "sampled_set", "quadrature_set", "over_ranks", "VERSION"]
 
 VERSION = 2
 CANDIDATES = 4000
@@ -124,6 +124,20 @@ class SampledElements:
     def move(self, dalpha):
         """max |Γ̃_p δα| over the points of S: how far an update moves them."""
         return float(np.abs(self.points_of(dalpha)).max()) if len(self.points) else 0.0
+
+
+def over_ranks(comm, report):
+    """A rank's sampled-set ``report`` for every rank (collective): |S| and
+    the elements it stands for summed, the force errors and the largest
+    weight the worst of any rank."""
+    from mpi4py import MPI
+
+    comm = comm.tompi4py()
+    out = dict(report, elements=comm.allreduce(int(report["elements"])),
+               of=comm.allreduce(int(report["of"])))
+    for key in ("training_error", "held_out_error", "max_weight"):
+        out[key] = comm.allreduce(float(report[key]), op=MPI.MAX)
+    return out
 
 
 # -- training ------------------------------------------------------------------

@@ -70,3 +70,15 @@ def energies(model, x, v):
     kinetic = 0.5 * v.dot(Mv)
     Mv.destroy()
     return kinetic + model.elastic_energy(x) - model.Qg.dot(x), kinetic
+
+
+def hanging_simulation(fabric, out, **options):
+    """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model into
+    ``out``, quiet, with the ``Simulation`` options given (output_every,
+    checkpoint_every, snapshots, …)."""
+    from knitfem.simulation import Simulation
+    from solvers.integrators import BackwardEuler
+
+    model = FullModel(PETSc.COMM_SELF, fabric, Material())
+    return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
+                      scene="hanging", verbose=False, **options)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from helpers import COMM, energies, gather, jersey, run
+from helpers import COMM, energies, gather, hanging_simulation, jersey, run
 from knitfem.model import FullModel, Material
 from knitfem.scenes import make_fabric
 from solvers.integrators import BackwardEuler, SymplecticEuler
@@ -145,15 +145,10 @@ def test_symplectic_energy_drift_bounded():
 
 
 def test_restart_equals_uninterrupted(tmp_path):
-    from knitfem.simulation import Simulation
-
     fab = jersey(3, 2, hold="top")
 
     def simulation(out):
-        model = FullModel(SELF, fab, Material())
-        return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
-                          scene="hanging", output_every=5, checkpoint_every=10,
-                          verbose=False)
+        return hanging_simulation(fab, out, output_every=5, checkpoint_every=10)
 
     whole = simulation(tmp_path / "a")
     whole.run(0.02)

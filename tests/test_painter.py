@@ -10,13 +10,10 @@ import pytest
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from helpers import jersey
+from helpers import hanging_simulation, jersey
 from knitfem import io
-from knitfem.model import FullModel, Material
 from knitfem.output import OutputDirectory, OutputError
 from knitfem.painter import Painter
-from knitfem.simulation import Simulation
-from solvers.integrators import BackwardEuler
 
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
                                 reason="the worker belongs to rank 0")
@@ -92,11 +89,8 @@ def test_a_run_and_its_restart_have_every_picture_after_close(tmp_path):
     fab = jersey(2, 1, hold="top")
 
     def simulation(out):
-        model = FullModel(SELF, fab, Material())
-        return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
-                          scene="hanging", output_every=2, checkpoint_every=4,
-                          verbose=False, snapshots=(0.002, 0.006),
-                          animation="a.gif")
+        return hanging_simulation(fab, out, output_every=2, checkpoint_every=4,
+                                  snapshots=(0.002, 0.006), animation="a.gif")
 
     pictures = {"hanging_t0.002s.png", "hanging_t0.006s.png",
                 "hanging_snapshots.png", "a.gif"}
