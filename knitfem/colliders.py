@@ -222,17 +222,6 @@ class Barrier:
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged = None
-        from scipy import sparse
-
-        ne, nq = elements.ne, len(elements.B)           # x_eq = Σ_a b_a(u_q) p_{e,a}
-        self.sampler = sparse.csr_matrix(
-            (np.broadcast_to(elements.B, (ne, nq, 4)).ravel(),
-             (np.repeat(np.arange(ne * nq), 4), np.repeat(elements.conn, nq, axis=0).ravel())),
-            shape=(ne * nq, elements.ncp))
-
-    def points(self, x):
-        """The quadrature points x_eq (ne, nq, 3) of the control points x."""
-        return (self.sampler @ np.asarray(x)).reshape(self.el.ne, -1, 3)
 
     def lag(self, x):
         """Friction's quantities at the step start x (module docstring):
@@ -242,7 +231,7 @@ class Barrier:
             return
         e, _, n, _, d1, _ = self._active(x)
         T = np.eye(3) - n[..., :, None] * n[..., None, :]
-        self.lagged = (e, -self.mu * d1, T, self.points(x)[e])
+        self.lagged = (e, -self.mu * d1, T, self.el.points(x)[e])
 
     def _slip(self, x):
         """(elements, μλ, T, u, y = |u|) of the lagged points at x."""
@@ -277,7 +266,7 @@ class Barrier:
         """δ = min over bodies of φ − r at every quadrature point, which body
         is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
         x_eq (ne, nq, 3))."""
-        pts = self.points(x)
+        pts = self.el.points(x)
         phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
         nearest = np.argmin(phi, axis=0)
         shape = pts.shape[:2]
@@ -337,7 +326,7 @@ class Barrier:
         from x0 to x1 (local; +inf without elements), each path sampled
         every ``resolution`` × r at least: a step that carried a yarn point
         through a body shows a depth there even when it ends outside."""
-        p0, p1 = self.points(x0), self.points(x1)
+        p0, p1 = self.el.points(x0), self.el.points(x1)
         reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
         m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
         deepest = np.inf

@@ -279,6 +279,7 @@ class YarnElements:
         self.W = self.weights * self.jac
         self.kappa0 = self._curvature(Y)
         self.delta = 1e-12 / self.jac.mean() if self.ne else 1e-12
+        self._sampler = None                 # of ``points``
 
     # -- geometry ------------------------------------------------------------
     def tangents(self, x):
@@ -291,8 +292,18 @@ class YarnElements:
         return y.reshape(-1, nq, 2, 3)
 
     def points(self, x):
-        """Curve points x(u_q) at every quadrature point, (ne, nq, 3)."""
-        return np.einsum("qa,eai->eqi", self.B, np.asarray(x)[self.conn])
+        """Curve points x(u_q) = Σ_a b_a(u_q) p_{e,a} at every quadrature
+        point, (ne, nq, 3): one product with the sparse (ne nq, ncp) matrix
+        of the b_a, made at the first call."""
+        if self._sampler is None:
+            from scipy import sparse
+
+            ne, nq = self.ne, len(self.B)
+            self._sampler = sparse.csr_matrix(
+                (np.broadcast_to(self.B, (ne, nq, 4)).ravel(),
+                 (np.repeat(np.arange(ne * nq), 4),
+                  np.repeat(self.conn, nq, axis=0).ravel())), shape=(ne * nq, self.ncp))
+        return (self._sampler @ np.asarray(x)).reshape(self.ne, -1, 3)
 
     @staticmethod
     def _curvature(y):
