@@ -148,7 +148,11 @@ def report(comm, rec):
 def main():
     comm = PETSc.COMM_WORLD
     opts = KnitOptions("bench_")
-    (rows, cols), = sizes_option(opts, "15x30", "jersey size ROWSxCOLS")
+    sizes = sizes_option(opts, "15x30", "jersey size ROWSxCOLS")
+    if len(sizes) != 1:
+        raise KnitError("-bench_sizes: the solver sweep takes one size, e.g. 20x40 "
+                        "(run it once a size, with -bench_tag)")
+    (rows, cols), = sizes
     steps = opts.getInt("steps", 5, "backward Euler steps", 1)
     config = opts.getString("config", "", "run only this configuration, in this "
                             "process (what the sweep spawns)")

@@ -53,6 +53,7 @@ class ConstraintAssembly:
         position[order] = np.arange(len(owner))
         self.kind = np.concatenate([np.full(nct, "contact"), holds.kind])[order] \
             if len(owner) else np.zeros(0, "<U7")
+        self.owner = owner[order]
         self.count = len(owner)
         lo, hi = np.searchsorted(owner[order], [layout.yarn_start, layout.yarn_end])
         self.start, self.nlocal = int(lo), int(hi - lo)

@@ -307,6 +307,27 @@ class FullModel:
         K.setOptionsPrefix("full_K_")
         return K
 
+    def yarn_blocks(self, size, overlap):
+        """Subdomains of whole courses for an additive Schwarz method on
+        [A Cᵀ; C 0]: this rank's courses in runs of ``size``, each widened by
+        ``overlap`` courses either side (across ranks too). A block is
+        (coordinates, constraint rows), global indices of A and C: every
+        coordinate of its courses and every constraint among them (a contact
+        of course k when k + 1 is in the block as well), so that its own
+        saddle point is solvable."""
+        lay, cons_asm = self.layout, self.constraints
+        ncp, nyarn = lay.ncp_per_yarn, lay.nyarn
+        row_owner = np.repeat(cons_asm.owner, 3)
+        row_reach = row_owner + np.repeat(cons_asm.kind == "contact", 3)
+        blocks = []
+        for first in range(lay.yarn_start, lay.yarn_end, size):
+            lo = max(first - overlap, 0)
+            hi = min(first + size + overlap, nyarn)
+            coords = np.arange(3 * ncp * lo, 3 * ncp * hi)
+            rows = np.flatnonzero((row_owner >= lo) & (row_reach < hi))
+            blocks.append((coords, rows))
+        return blocks
+
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""
         return self.elements.strain(self.yarn_points(x))

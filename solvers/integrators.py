@@ -260,7 +260,8 @@ class NewtonStepper:
         self.MA.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
                                   dense=getattr(system, "dense_saddle", False),
-                                  prefix=prefix)
+                                  prefix=prefix,
+                                  blocks=getattr(system, "yarn_blocks", None))
         x0.destroy()
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)

@@ -72,7 +72,8 @@ class StaticSolver:
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
-                                  dense=getattr(system, "dense_saddle", False))
+                                  dense=getattr(system, "dense_saddle", False),
+                                  blocks=getattr(system, "yarn_blocks", None))
         x0.destroy()
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix("static_")

@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from mpi4py import MPI
 
@@ -213,9 +214,12 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
                OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
                OMPI_MCA_rmaps_base_oversubscribe="1")
     quick = ("knitfem dofs", "knitfem pattern")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    os.symlink(os.path.join(root, "benchmarks"), tmp_path / "benchmarks")  # -options_file
     for line in commands:
         words = line.split()
-        runs = line.startswith(quick) or re.search(r" -(full|reduced|mixed|static)_", line)
+        runs = line.startswith(quick) or re.search(
+            r" -((full|reduced|mixed|static)_|options_file )", line)
         for run_it in (False, True) if runs else (False,):
             p = subprocess.run(words + ([] if run_it else ["-help"])
                                + ["-skip_petscrc"], capture_output=True,
@@ -306,3 +310,22 @@ def test_ob1_messaging_only_when_every_rank_is_here(env, local):
     from knitfem import _all_ranks_local
 
     assert _all_ranks_local(env) is local
+
+
+def test_krylov_rc_steps_as_the_direct_solver(tmp_path):
+    """benchmarks/solver_configs/krylov.rc (FGMRES, whole-course Schwarz)
+    takes the default MUMPS run's Newton iterations to its state."""
+    root = os.path.dirname(os.path.dirname(__file__))
+    rc = os.path.join(root, "benchmarks", "solver_configs", "krylov.rc")
+    args = ("run", "-knit_rows", "14", "-knit_cols", "4", "-knit_t_end", "0.02",
+            "-knit_snapshots", "")
+    recs = []
+    for name, extra in (("direct", ()), ("krylov", ("-options_file", rc))):
+        p = knitfem(*args, *extra, "-o", str(tmp_path / name))
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "warning" not in p.stdout + p.stderr
+        recs.append(json.load(open(tmp_path / name / "summary.json")))
+    direct, krylov = recs
+    assert krylov["newton_iterations"] == direct["newton_iterations"]
+    assert krylov["ksp_iterations"] > direct["ksp_iterations"]       # iterated
+    assert np.allclose(krylov["centroid"], direct["centroid"], rtol=0, atol=1e-12)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
+from helpers import to_scipy
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric
 from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, saddle_ksp,
@@ -72,6 +73,31 @@ def test_values_in_place_keep_one_analysis(model, options):
         assert res < 1e-6                 # K's condition number is ~1e10
     assert sym.getPerfInfo()["count"] - n0 == 1
     assert num.getPerfInfo()["count"] - m0 == 3
+    saddle.destroy()
+
+
+def test_update_writes_A_C_and_Ct_where_they_belong(model, options):
+    """After A and C change, K (and the regularised P) equal [A Cᵀ; C 0]
+    (P: −δ on the multipliers' diagonal) built afresh from the blocks."""
+    options(t_upd_saddle_regularization=1.0)
+    A = jacobian(model)
+    saddle = SaddlePoint(A, model.C, prefix="t_upd_")
+    x = model.rest_state()
+    x.scale(1.01)
+    C = model.constraint_jacobian(x)
+    jacobian(model, scale=1.01).copy(A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+    saddle.update(constraints=True)
+    Ct = C.transpose(PETSc.Mat())
+    fresh = PETSc.Mat().createNest([[A, Ct], [C, None]], comm=COMM).convert("aij")
+    start = saddle.K.getOwnershipRange()[0]
+    shift = np.zeros((saddle.nu + saddle.nl, saddle.K.getSize()[1]))
+    lam = np.arange(saddle.nu, saddle.nu + saddle.nl)
+    shift[lam, start + lam] = saddle.delta
+    expect = to_scipy(fresh).toarray()
+    for M, s in ((saddle.K, 0.0), (saddle.P, 1.0)):
+        D = to_scipy(M).toarray() - expect + s * shift
+        assert np.abs(D).max() <= 1e-14 * np.abs(expect).max()
+    model.constraint_jacobian(model.rest_state())
     saddle.destroy()
 
 
@@ -150,3 +176,51 @@ def test_workspace_retried(model, options):
     assert PETSc.Options().getInt("t_ws_mat_mumps_icntl_14") >= 100
     assert WORKSPACE_RAISED["t_ws_"] >= 100         # said at the run's end
     saddle.destroy()
+
+
+def test_course_blocks_hold_their_own_constraints(model):
+    """Whole-course Schwarz blocks: each holds every coordinate of its
+    courses and exactly the constraints among them (a contact of course k
+    when k + 1 is in too), and together they cover this rank's courses and
+    constraints."""
+    ncp, cons_asm = model.fabric.ncp, model.constraints
+    yarn_of_row = np.repeat(cons_asm.owner, 3)
+    contact = np.repeat(cons_asm.kind == "contact", 3)
+    lay = model.layout
+    covered, rows_seen = set(), set()
+    for coords, rows in model.yarn_blocks(2, 1):
+        courses = np.unique(coords // (3 * ncp))
+        assert len(coords) == 3 * ncp * len(courses)
+        assert np.all(np.diff(courses) == 1) and len(courses) <= 4
+        lo, hi = courses[0], courses[-1] + 1
+        inside = (yarn_of_row >= lo) & (yarn_of_row + contact < hi)
+        assert np.array_equal(rows, np.flatnonzero(inside))
+        covered |= set(courses.tolist())
+        rows_seen |= set(rows.tolist())
+    assert set(lay.local_yarns) <= covered
+    mine = np.flatnonzero((yarn_of_row >= lay.yarn_start) & (yarn_of_row < lay.yarn_end))
+    assert set(mine.tolist()) <= rows_seen
+
+
+@pytest.mark.parametrize("courses,overlap", [(5, 0), (1, 1), (2, 2)])
+def test_course_schwarz_solves_K(model, options, courses, overlap):
+    """FGMRES with additive Schwarz on whole courses solves K to the direct
+    solution; one subdomain of every course is the direct solve itself."""
+    options(t_asm_ksp_type="fgmres", t_asm_pc_type="asm", t_asm_ksp_rtol=1e-12,
+            t_asm_saddle_asm_courses=courses, t_asm_saddle_asm_overlap=overlap)
+    A = jacobian(model, scale=1.001)
+    schwarz = SaddlePoint(A, model.C, blocks=model.yarn_blocks)
+    direct = SaddlePoint(A, model.C)
+    ksp = saddle_ksp(schwarz, "t_asm_")
+    assert ksp.getPC().getType() == "asm"
+    z1, r1 = solve(direct, saddle_ksp(direct, "t_asm_direct_"))
+    z2, r2 = solve(schwarz, ksp)
+    assert r2 < 1e-10
+    if COMM.size == 1 and courses == 5:
+        assert ksp.getIterationNumber() <= 2           # round-off of K (κ ~ 1e10)
+    else:
+        assert 1 < ksp.getIterationNumber() < 300        # random b, rtol 1e-12
+    z2.axpy(-1.0, z1)
+    assert z2.norm() <= 1e-6 * z1.norm()
+    for s in (direct, schwarz):
+        s.destroy()
