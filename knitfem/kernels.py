@@ -77,15 +77,16 @@ class CompiledKernels:
                      np.ascontiguousarray(el.D), np.ascontiguousarray(el.Xp2),
                      np.ascontiguousarray(el.W), np.ascontiguousarray(el.kappa0),
                      el.EA, el.EI, el.delta)
-        self.slot = None
+        self.blocks = {}             # id(slot) → (slot, its block_slots)
 
     def add_gradient(self, x, out, scale=1.0):
         self.module.add_gradient(np.ascontiguousarray(x), *self.args, scale, out)
 
     def hessian_values(self, x, slot, values, xref=None):
-        if self.slot is not slot:
-            self.slot, self.blocks = slot, block_slots(slot)
-        self.module.hessian_values(np.ascontiguousarray(x), *self.args, *self.blocks,
+        known = self.blocks.get(id(slot))
+        if known is None or known[0] is not slot:
+            known = self.blocks[id(slot)] = (slot, block_slots(slot))
+        self.module.hessian_values(np.ascontiguousarray(x), *self.args, *known[1],
                                    values, _contiguous(xref))
 
     def element_gradient(self, x):

@@ -241,17 +241,17 @@ class FullModel:
 
     def _tangent_pattern(self):
         """K's pattern (indptr3, indices3): the yarn elements and the contacts'
-        curvature; where the yarn values go in it (``tangent_slot``); the
-        constraints' curvature operator in it. Made when K is first needed."""
-        lay, cons_asm, slot3 = self.layout, self.constraints, self.slot3
+        curvature; the slots of the yarn elements' entries in it
+        (``tangent_slot3``); the constraints' curvature operator in it. Made
+        when K is first needed."""
+        lay, cons_asm = self.layout, self.constraints
         with EV_ASSEMBLY:
             tangent = ElementPattern([self.conn, cons_asm.element_cols()],
                                      lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
             self.indptr3 = indptr3.astype(PETSc.IntType)
             self.indices3 = indices3.astype(PETSc.IntType)
-            self.tangent_slot = np.empty(len(self.K_values), dtype=np.int64)
-            self.tangent_slot[slot3.ravel()] = slot3_yarn.ravel()
+            self.tangent_slot3 = np.ascontiguousarray(slot3_yarn, dtype=np.int64)
             self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
             cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
         self._tangent = True
@@ -262,13 +262,17 @@ class FullModel:
         (returned) through the slots of the element entries. With the state
         ``xref`` of the last Newton linearisation, the Newton matrix whose
         axial force is linearised from it (MIP, ``yarn.stretch_terms``)."""
+        return self._hessian(x, xref, self.slot3, self.K_values)
+
+    def _hessian(self, x, xref, slot3, values):
+        """Σ_e K_e written into ``values`` at the element slots ``slot3``."""
         with EV_TANGENT:
             P = self.yarn_points(x)
             ref = None if xref is None else self.yarn_points(xref)
-            self.kernels.hessian_values(P, self.slot3, self.K_values, ref)
+            self.kernels.hessian_values(P, slot3, values, ref)
             if self.barrier is not None:
-                self.barrier.add_hessian(P, self.slot3, self.K_values)
-            return self.K_values
+                self.barrier.add_hessian(P, slot3, values)
+            return values
 
     def stiffness(self, x, mu=None, weight=1.0, xref=None):
         """K = ∂²E/∂ε² + w Σ_i μ_i ∇²g_i (symmetric, full 3×3 blocks, block
@@ -280,9 +284,7 @@ class FullModel:
         (``createAIJWithArrays``); on several, they are copied in."""
         if self._tangent is None:
             self._tangent_pattern()
-        values = self.tangent_values
-        values.fill(0.0)
-        values[self.tangent_slot] = self.stiffness_values(x, xref)
+        values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
         if mu is not None and weight:
             with EV_TANGENT:
                 self.constraints.add_curvature(mu, weight, values)

@@ -92,19 +92,23 @@ class SaddlePoint:
         and ``slot`` takes the concatenated values of A, Cᵀ and C to their
         places in it; Cᵀ's values are C's permuted by ``transpose``."""
         indptr, indices, values = self.K.getValuesCSR()
-        n = self.K.getSize()[0]
-        keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
-        ours = np.repeat(np.arange(n, dtype=np.int64), np.diff(self.csr[0])) * n \
-            + self.csr[1]
-        self.slot = np.empty(len(ours), dtype=np.int64)
-        self.slot[self.order] = np.searchsorted(keys, ours)
+        n, nu = self.K.getSize()[0], self.nu
+        # K's rows are ours (columns ascending: A's, then Cᵀ's; or C's), each
+        # multiplier row ending in its explicit zero diagonal
+        ours, cols = self.csr
+        lam = np.arange(self.nl)
+        before = np.repeat(np.maximum(np.arange(n) - nu, 0), np.diff(ours))
+        self.slot = np.empty(len(cols), dtype=np.int64)
+        self.slot[self.order] = np.arange(len(cols)) + before
+        self.diagonal = ours[nu + 1:] + lam                        # the −δI block
+        if not (np.array_equal(indices[self.slot[self.order]], cols)
+                and np.array_equal(indices[self.diagonal], nu + lam)):
+            raise RuntimeError("K's pattern is not [A Cᵀ; C diagonal] row by row")
         ci, cj, _ = self.C.getValuesCSR()
         self.transpose = np.lexsort((np.repeat(np.arange(len(ci) - 1), np.diff(ci)), cj))
         self.K.destroy()
         self.arrays = [values]
         self.K = self._on_array(n, indptr, indices, values)
-        lam = np.arange(self.nu, n, dtype=np.int64)
-        self.diagonal = np.searchsorted(keys, lam * n + lam)      # the −δI block
 
     @staticmethod
     def _on_array(n, indptr, indices, values):
