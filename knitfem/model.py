@@ -17,7 +17,8 @@ interface.
 The element loops run in the kernels of ``kernels.py`` (compiled by default,
 the numpy reference with ``kernels="numpy"``); they add the elastic forces
 into Q's array and write K's values in place: on one rank K is created on
-the model's own CSR arrays, so no copy reaches PETSc.
+the model's own CSR arrays, so no copy reaches PETSc; on several ranks the
+values go in by one MatSetValuesCOO.
 """
 
 from dataclasses import dataclass
@@ -25,9 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
+from solvers.coo import coo_matrix, set_values
 
 from . import constraints as cons
-from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from .assembly import ElementPattern, YarnLayout, create_aij, csr_rows, kron_identity
 from .colliders import Barrier
 from .constraint_assembly import ConstraintAssembly
 from .kernels import yarn_kernels
@@ -281,7 +283,8 @@ class FullModel:
         ``xref`` the MIP reference of ``stiffness_values``.
 
         On one rank K holds ``tangent_values`` itself
-        (``createAIJWithArrays``); on several, they are copied in."""
+        (``createAIJWithArrays``); on several, K is a COO matrix of the
+        pattern's entries (``solvers.coo``) and they are set in one call."""
         if self._tangent is None:
             self._tangent_pattern()
         values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
@@ -291,16 +294,16 @@ class FullModel:
         with EV_ASSEMBLY:
             if self.K is None:
                 self.K = self._create_stiffness(values)
-            elif self.comm.size > 1:
-                self.K.setValuesCSR(self.indptr3, self.indices3, values)
+            if self.comm.size > 1:
+                set_values(self.K, values)
             self.K.assemble()                  # a new state: factorisations redo
             return self.K
 
     def _create_stiffness(self, values):
         n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
         if self.comm.size > 1:
-            K = create_aij(self.comm, (n, N), (n, N),
-                           (self.indptr3, self.indices3, values), bsize=3)
+            rows = 3 * self.layout.cp_start + csr_rows(self.indptr3)
+            K = coo_matrix(self.comm, ((n, N), (n, N)), rows, self.indices3, bsize=3)
         else:
             K = PETSc.Mat().createAIJWithArrays(
                 (n, N), (self.indptr3, self.indices3, values), comm=self.comm)

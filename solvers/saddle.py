@@ -35,6 +35,10 @@ solves K itself, in one or two iterations.
 import numpy as np
 from petsc4py import PETSc
 
+from knitfem.assembly import csr_rows
+
+from .coo import coo_matrix, set_values
+
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
            "ksp_failure", "failure_or_retry", "pc_failure"]
 
@@ -76,14 +80,18 @@ class SaddlePoint:
         self.Ct = C.transpose(PETSc.Mat())
         self.Z = zero_diagonal(comm, *C.getSizes()[0])
         self.nest = PETSc.Mat().createNest([[A, self.Ct], [C, self.Z]], comm=comm)
-        self.K = self.nest.convert("aij", PETSc.Mat())
-        self.K.setBlockSize(1)
-        if dense:
-            self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
         self.fields = self.nest.getNestISs()[0]
-        self.csr, self.order = self._value_layout(A, C, dense)
-        if comm.getSize() == 1 and not dense:
-            self._own_values()
+        # K's rows on rank r: its rows of A, then its rows of C
+        self.k_ranges = np.add(A.getOwnershipRanges(), C.getOwnershipRanges())
+        if comm.getSize() > 1:
+            self._coo_values()
+        else:
+            self.K = self.nest.convert("aij", PETSc.Mat())
+            self.K.setBlockSize(1)
+            if dense:
+                self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
+            else:
+                self._own_values()
         tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
         self.P = self.K if tau == 0 else self.regularized(tau)
 
@@ -91,6 +99,7 @@ class SaddlePoint:
         """On one rank K is built on a value array of its own (``arrays``),
         and ``slot`` takes the concatenated values of A, Cᵀ and C to their
         places in it; Cᵀ's values are C's permuted by ``transpose``."""
+        self.csr, self.order = self._value_layout()
         indptr, indices, values = self.K.getValuesCSR()
         n, nu = self.K.getSize()[0], self.nu
         # K's rows are ours (columns ascending: A's, then Cᵀ's; or C's), each
@@ -126,35 +135,48 @@ class SaddlePoint:
             values[self.diagonal] = -self.delta
             self.arrays.append(values)
             return self._on_array(self.K.getSize()[0], indptr, indices, values)
-        P = self.K.duplicate(copy=True)
-        shift = P.createVecLeft()
-        self.split(shift)[1][:] = -self.delta
-        P.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
-        shift.destroy()
-        return P
+        self.P = coo_matrix(self.K.getComm(), self.K.getSizes(), *self.coo)
+        self.coo_diagonals.append(np.full(self.nl, -self.delta))
+        self.update()
+        return self.P
 
-    def _value_layout(self, A, C, dense):
-        """K's local rows in CSR (global columns of K) made of A's and Cᵀ's
-        rows, then C's, and the permutation ``order`` that takes the
-        concatenated values of A, Cᵀ and C to it."""
-        if dense:
-            return None, None
-        # a global column j of a block, owned by rank r, is column
-        # j − (block's first on r) + (K's first on r) (+ A's rows on r for λ)
-        a = np.asarray(A.getOwnershipRanges())
-        c = np.asarray(C.getOwnershipRanges())
-        k = np.asarray(self.K.getOwnershipRanges())
+    def _coo_values(self):
+        """On several ranks K is a COO matrix (``solvers.coo``) of A's
+        entries, Cᵀ's (C's sent to the rows they land in), C's and the
+        multipliers' diagonal, written from A's and C's values as they are."""
+        a, c = (np.asarray(M.getOwnershipRanges()) for M in (self.A, self.C))
+        k, rank = self.k_ranges, self.A.getComm().getRank()
+        ai, aj, _ = self.A.getValuesCSR()
+        ci, cj, _ = self.C.getValuesCSR()
+        a_rows = k[rank] + csr_rows(ai)
+        c_rows = k[rank] + self.nu + csr_rows(ci)
+        a_cols, c_cols = self._to_k(aj, a, 0 * a), self._to_k(cj, a, 0 * a)
+        lam = k[rank] + self.nu + np.arange(self.nl)
+        self.coo = (np.concatenate([a_rows, c_cols, c_rows, lam]),
+                    np.concatenate([a_cols, c_rows, c_cols, lam]))
+        self.coo_diagonals = [np.zeros(self.nl)]
+        self.K = coo_matrix(self.A.getComm(), self.nest.getSizes(), *self.coo)
+        self.update()
 
-        def to_k(cols, ranges, shift):
-            owner = np.searchsorted(ranges, cols, side="right") - 1
-            return cols - ranges[owner] + k[owner] + shift[owner]
+    def _to_k(self, cols, ranges, shift):
+        """K's global index of global index ``cols`` of a block whose
+        ownership is ``ranges``: j − (block's first on its rank r) + (K's
+        first on r) + ``shift``[r] (A's rows on r for a multiplier)."""
+        owner = np.searchsorted(ranges, cols, side="right") - 1
+        return cols - ranges[owner] + self.k_ranges[owner] + shift[owner]
 
+    def _value_layout(self):
+        """K's rows in CSR made of A's and Cᵀ's rows, then C's, and the
+        permutation ``order`` that takes the concatenated values of A, Cᵀ
+        and C to it (one rank)."""
+        a, c = (np.asarray(M.getOwnershipRanges()) for M in (self.A, self.C))
         rows, cols = [], []
-        for M, ranges, shift, row0 in ((A, a, 0 * a, 0), (self.Ct, c, np.diff(a), 0),
-                                       (C, a, 0 * a, self.nu)):
+        for M, ranges, shift, row0 in ((self.A, a, 0 * a, 0),
+                                       (self.Ct, c, np.diff(a), 0),
+                                       (self.C, a, 0 * a, self.nu)):
             indptr, j, _ = M.getValuesCSR()
-            rows.append(row0 + np.repeat(np.arange(len(indptr) - 1), np.diff(indptr)))
-            cols.append(to_k(j, ranges, shift))
+            rows.append(row0 + csr_rows(indptr))
+            cols.append(self._to_k(j, ranges, shift))
         rows, cols = np.concatenate(rows), np.concatenate(cols)
         order = np.argsort(rows, kind="stable")
         indptr = np.searchsorted(rows[order], np.arange(self.nu + self.nl + 1))
@@ -172,16 +194,15 @@ class SaddlePoint:
             for K in (self.K, self.P) if self.P is not self.K else (self.K,):
                 K.assemble()                 # a new state: factorisations redo
             return
-        if self.constrained and constraints:
-            self.C.transpose(self.Ct)
         if self.aij is not None:
+            if constraints:
+                self.C.transpose(self.Ct)
             self._dense_update(constraints)
         elif self.constrained:
-            values = np.concatenate([M.getValuesCSR()[2]
-                                     for M in (self.A, self.Ct, self.C)])[self.order]
-            for K in (self.K, self.P) if self.P is not self.K else (self.K,):
-                K.setValuesCSR(*self.csr, values)
-                K.assemble()
+            a, c = self.A.getValuesCSR()[2], self.C.getValuesCSR()[2]
+            Ps = (self.K,) if self.P is None or self.P is self.K else (self.K, self.P)
+            for K, diagonal in zip(Ps, self.coo_diagonals):
+                set_values(K, np.concatenate([a, c, c, diagonal]))
 
     def _dense_update(self, constraints):
         """A dense K written in place: A's block from A's values when A's
