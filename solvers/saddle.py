@@ -8,9 +8,10 @@ that factorisations and fieldsplit find its entries. When A's values change
 its nonzero state and factorisations keep their symbolic phase (MUMPS's
 analysis runs once a run). On one rank K is made on a value array of its
 own, which ``update`` fills by one indexed copy, Cᵀ's values being C's
-permuted (at 40×160 a Newton matrix takes 0.17 s to form this way, 0.32 s
-through MatTranspose and setValuesCSR, which more ranks still use; Cᵀ
-itself then only serves the nest's fields). Small serial systems (the reduced model's) can be
+permuted; on several K is a COO matrix (``solvers.coo``) whose Cᵀ entries
+are C's sent to the rows they land in (at 40×160 a Newton matrix took 0.32 s
+to form through MatTranspose and setValuesCSR, 0.17 s so; the nest's Cᵀ
+then only gives the fields). Small serial systems (the reduced model's) can be
 held dense instead and factorised by LAPACK's pivoting LU. Each rank's
 rows are [its A rows, its C rows], so a saddle vector's local array is the
 concatenation of the two local parts.
@@ -99,18 +100,17 @@ class SaddlePoint:
         """On one rank K is built on a value array of its own (``arrays``),
         and ``slot`` takes the concatenated values of A, Cᵀ and C to their
         places in it; Cᵀ's values are C's permuted by ``transpose``."""
-        self.csr, self.order = self._value_layout()
+        (ours, cols), order = self._value_layout()
         indptr, indices, values = self.K.getValuesCSR()
         n, nu = self.K.getSize()[0], self.nu
         # K's rows are ours (columns ascending: A's, then Cᵀ's; or C's), each
         # multiplier row ending in its explicit zero diagonal
-        ours, cols = self.csr
         lam = np.arange(self.nl)
         before = np.repeat(np.maximum(np.arange(n) - nu, 0), np.diff(ours))
         self.slot = np.empty(len(cols), dtype=np.int64)
-        self.slot[self.order] = np.arange(len(cols)) + before
+        self.slot[order] = np.arange(len(cols)) + before
         self.diagonal = ours[nu + 1:] + lam                        # the −δI block
-        if not (np.array_equal(indices[self.slot[self.order]], cols)
+        if not (np.array_equal(indices[self.slot[order]], cols)
                 and np.array_equal(indices[self.diagonal], nu + lam)):
             raise RuntimeError("K's pattern is not [A Cᵀ; C diagonal] row by row")
         ci, cj, _ = self.C.getValuesCSR()
@@ -227,16 +227,12 @@ class SaddlePoint:
         return self.K.createVecRight()
 
     def subdomains(self, size, overlap):
-        """``blocks(size, overlap)`` as index sets of K. K's rows on rank r
-        are its rows of A, then its rows of C, so A's row i on rank r is K's
-        i + (C's first row on r) and C's row g is K's g + (A's end on r)."""
-        a = np.asarray(self.A.getOwnershipRanges())
-        c = np.asarray(self.C.getOwnershipRanges())
+        """``blocks(size, overlap)`` as index sets of K (``_to_k``)."""
+        a, c = (np.asarray(M.getOwnershipRanges()) for M in (self.A, self.C))
         sets = []
         for coords, rows in self.blocks(size, overlap):
-            ra = np.searchsorted(a, coords, side="right") - 1
-            rc = np.searchsorted(c, rows, side="right") - 1
-            index = np.concatenate([coords + c[ra], rows + a[rc + 1]])
+            index = np.concatenate([self._to_k(coords, a, 0 * a),
+                                    self._to_k(rows, c, np.diff(a))])
             sets.append(PETSc.IS().createGeneral(np.sort(index).astype(PETSc.IntType),
                                                  comm=PETSc.COMM_SELF))
         return sets
