@@ -317,7 +317,7 @@ def test_krylov_rc_steps_as_the_direct_solver(tmp_path):
     takes the default MUMPS run's Newton iterations to its state."""
     root = os.path.dirname(os.path.dirname(__file__))
     rc = os.path.join(root, "benchmarks", "solver_configs", "krylov.rc")
-    args = ("run", "-knit_rows", "14", "-knit_cols", "4", "-knit_t_end", "0.02",
+    args = ("run", "-knit_rows", "30", "-knit_cols", "3", "-knit_t_end", "0.02",
             "-knit_snapshots", "")
     recs = []
     for name, extra in (("direct", ()), ("krylov", ("-options_file", rc))):
