@@ -158,12 +158,11 @@ class ConstraintAssembly:
         slots = slot3.reshape(n, 8, 3, 8, 3)[:, :, d, :, d]          # (3, n, 8, 8)
         slots = np.broadcast_to(slots.transpose(1, 0, 2, 3)[:, None],
                                 (n, 3, 3, 8, 8))                    # c, j, d, k, l
-        cols = np.broadcast_to((3 * np.arange(n)[:, None] + np.arange(3))
-                               [:, :, None, None, None], slots.shape)
-        vals = np.broadcast_to(h[:, :, None], slots.shape)
         keep = slots >= 0
-        self.B = sp.csr_matrix((vals[keep], (slots[keep], cols[keep])),
-                               shape=(nnz, 3 * n))
+        # column 3c + j of B holds (d, k, l): in this order, B by columns
+        indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, -1).sum(axis=1))])
+        vals = np.broadcast_to(h[:, :, None], slots.shape)
+        self.B = sp.csc_matrix((vals[keep], slots[keep], indptr), shape=(nnz, 3 * n))
         return self.B
 
     def add_curvature(self, mu, weight, values):
