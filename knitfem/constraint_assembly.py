@@ -160,7 +160,7 @@ class ConstraintAssembly:
                                 (n, 3, 3, 8, 8))                    # c, j, d, k, l
         keep = slots >= 0
         # column 3c + j of B holds (d, k, l): in this order, B by columns
-        indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, -1).sum(axis=1))])
+        indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, 192).sum(axis=1))])
         vals = np.broadcast_to(h[:, :, None], slots.shape)
         self.B = sp.csc_matrix((vals[keep], slots[keep], indptr), shape=(nnz, 3 * n))
         return self.B
