@@ -115,7 +115,7 @@ class ConstraintAssembly:
         self.local = contacts.select(self.mine)          # rows of this rank
         self.reaching = contacts.select(self.touching)   # into its tangent rows
         self.nonlinear = contacts.count > 0               # C depends on ε
-        self.B = None
+        self.B = None          # curvature_operator in the owning model's tangent
 
     def _points(self, x):
         """Control points read by this rank's rows, from the state x (Vec)."""
@@ -162,8 +162,7 @@ class ConstraintAssembly:
         # column 3c + j of B holds (d, k, l): in this order, B by columns
         indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, 192).sum(axis=1))])
         vals = np.broadcast_to(h[:, :, None], slots.shape)
-        self.B = sp.csc_matrix((vals[keep], slots[keep], indptr), shape=(nnz, 3 * n))
-        return self.B
+        return sp.csc_matrix((vals[keep], slots[keep], indptr), shape=(nnz, 3 * n))
 
     def add_curvature(self, mu, weight, values):
         """values += weight · B μ (the tangent's CSR values). Collective."""

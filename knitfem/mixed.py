@@ -383,9 +383,7 @@ class MixedModel(EmbeddedModel):
         self.t_values = np.zeros(len(indices3), dtype=PETSc.ScalarType)
         slots = np.full((len(reach), 24, 24), -1, dtype=np.int64)
         slots[kept] = slot_c
-        saved = asm.B                       # the full model's own stays its own
         self.t_curvature = asm.curvature_operator(slots, len(indices3))
-        asm.B = saved
         self.Kt = self.Kp = None
         # every α on every rank (S's points reach any volume point)
         NV = space.volume.size

@@ -255,7 +255,8 @@ class FullModel:
             self.indices3 = indices3.astype(PETSc.IntType)
             self.tangent_slot3 = np.ascontiguousarray(slot3_yarn, dtype=np.int64)
             self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
-            cons_asm.curvature_operator(slot3_contacts, len(self.indices3))
+            cons_asm.B = cons_asm.curvature_operator(slot3_contacts,
+                                                     len(self.indices3))
         self._tangent = True
 
     def stiffness_values(self, x, xref=None):

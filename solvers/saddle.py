@@ -95,6 +95,8 @@ class SaddlePoint:
                 self._own_values()
         tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
         self.P = self.K if tau == 0 else self.regularized(tau)
+        if comm.getSize() > 1:
+            self.update()                         # the COO matrices' first values
 
     def _own_values(self):
         """On one rank K is built on a value array of its own (``arrays``),
@@ -135,10 +137,9 @@ class SaddlePoint:
             values[self.diagonal] = -self.delta
             self.arrays.append(values)
             return self._on_array(self.K.getSize()[0], indptr, indices, values)
-        self.P = coo_matrix(self.K.getComm(), self.K.getSizes(), *self.coo)
-        self.coo_diagonals.append(np.full(self.nl, -self.delta))
-        self.update()
-        return self.P
+        P = coo_matrix(self.K.getComm(), self.K.getSizes(), *self.coo)
+        self.coo_targets.append((P, np.full(self.nl, -self.delta)))
+        return P
 
     def _coo_values(self):
         """On several ranks K is a COO matrix (``solvers.coo``) of A's
@@ -154,9 +155,8 @@ class SaddlePoint:
         lam = k[rank] + self.nu + np.arange(self.nl)
         self.coo = (np.concatenate([a_rows, c_cols, c_rows, lam]),
                     np.concatenate([a_cols, c_rows, c_cols, lam]))
-        self.coo_diagonals = [np.zeros(self.nl)]
         self.K = coo_matrix(self.A.getComm(), self.nest.getSizes(), *self.coo)
-        self.update()
+        self.coo_targets = [(self.K, np.zeros(self.nl))]     # (matrix, its λ diagonal)
 
     def _to_k(self, cols, ranges, shift):
         """K's global index of global index ``cols`` of a block whose
@@ -200,8 +200,7 @@ class SaddlePoint:
             self._dense_update(constraints)
         elif self.constrained:
             a, c = self.A.getValuesCSR()[2], self.C.getValuesCSR()[2]
-            Ps = (self.K,) if self.P is None or self.P is self.K else (self.K, self.P)
-            for K, diagonal in zip(Ps, self.coo_diagonals):
+            for K, diagonal in self.coo_targets:
                 set_values(K, np.concatenate([a, c, c, diagonal]))
 
     def _dense_update(self, constraints):
