@@ -296,8 +296,9 @@ class FullModel:
             if self.K is None:
                 self.K = self._create_stiffness(values)
             if self.comm.size > 1:
-                set_values(self.K, values)
-            self.K.assemble()                  # a new state: factorisations redo
+                set_values(self.K, values)     # assembles it: a new state
+            else:
+                self.K.assemble()              # a new state: factorisations redo
             return self.K
 
     def _create_stiffness(self, values):
