@@ -172,7 +172,7 @@ def model_options(opts):
     (-knit_lod, -knit_volume; -knit_full_region(s))."""
     from .kernels import KINDS
     from .mixed import region_options
-    from .reduced import sampling_options, volume_options
+    from .reduced import sampling_options, stretch_options, volume_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
@@ -181,6 +181,7 @@ def model_options(opts):
                              "compiled loops or the numpy reference")
     volume_options(opts)
     sampling_options(opts)
+    stretch_options(opts)
     region_options(opts)
     return kind, nq, kernels
 
@@ -189,13 +190,14 @@ def build_system(comm, opts, fabric, material):
     """The full, reduced or mixed model of -knit_model, from a fabric."""
     from .mixed import mixed_from_options
     from .model import FullModel
-    from .reduced import embedding_from_options, reduced_from_options
+    from .reduced import embedding_from_options, reduced_from_options, stretch_options
 
     kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
-        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels)
+        own = kind != "reduced" or stretch_options(opts, bool(fabric.bodies)) == "yarn"
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own)
         if kind == "full":
             return full
         embedding = embedding_from_options(opts, comm, fabric, full.layout)
@@ -263,17 +265,31 @@ def colliders_from_options(opts):
         raise KnitError(f"-knit_collider: {err}") from None
 
 
-def integrator_from_options(opts):
+SETTLING = {("drape", "reduced"): ("implicit", 1e-2)}
+"""Default (integrator, fixed step) by (scene, model) where the answer is a
+rest state on a body: the reduced knit's soft loops ring against the body,
+which BDF2's error control follows in steps of 1e-5 s until the run stalls;
+backward Euler damps the ringing and settles in 1e-2 s steps. (The full
+model keeps BDF2: its stiff yarns take hundreds of Newton iterations a step
+at 1e-2 s.)"""
+
+
+def integrator_from_options(opts, scene=None, model=None):
     """The integrator of -knit_integrator with its step control: fixed steps
-    under -knit_dt, else error-controlled (-knit_rtol, -knit_atol). Returns
-    a function of the system (the options are read now)."""
+    under -knit_dt, else error-controlled (-knit_rtol, -knit_atol); by
+    default ``SETTLING``'s for the scene and model. Returns a function of the
+    system (the options are read now)."""
     from solvers.integrators import INTEGRATORS, GeneralizedAlpha
     from solvers.stepping import StepControl
 
-    method = opts.getChoice("integrator", "bdf2", tuple(INTEGRATORS),
+    method0, fixed0 = SETTLING.get((scene, model), ("bdf2", 0.0))
+    method = opts.getChoice("integrator", method0, tuple(INTEGRATORS),
                             "integrator: BDF2, generalized-alpha (both 2nd order), "
-                            "backward Euler, symplectic Euler (explicit)")
-    dt = opts.getReal("dt", 0.0, "fixed time step [s] (0: error-controlled steps)",
+                            "backward Euler, symplectic Euler (explicit) (the "
+                            "reduced drape: implicit, else bdf2)")
+    dt = opts.getReal("dt", fixed0 if method == method0 else 0.0,
+                      "fixed time step [s] (0: error-controlled steps; the "
+                      "reduced drape: 1e-2 with its implicit default)",
                       nonnegative=True)
     rtol = opts.getReal("rtol", 2e-4, "relative tolerance of the local error",
                         nonnegative=True)
@@ -345,7 +361,7 @@ def run(comm):
                             "integrators; drape: 0.5, others 0)", nonnegative=True)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
-    make_integrator = integrator_from_options(opts)
+    make_integrator = integrator_from_options(opts, scene, model_options(opts)[0])
     unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
                             "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
@@ -385,7 +401,6 @@ def run(comm):
         if c not in CHANGEABLE:
             raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
                             + ", ".join(CHANGEABLE))
-    model_options(opts)
     adapt_options(opts)
     path = opts.getOutput(f"out/{scene}")
     if opts.finish("knitfem run", RUN_HELP_FOOTER):
@@ -427,6 +442,8 @@ def run(comm):
         if fabric.bodies:
             problem["bodies"] = [b.describe() for b in fabric.bodies]
             problem["friction"] = friction
+        if getattr(system, "shell", None) is not None:
+            problem["stretch"] = "shell"
         sim = Simulation(system, integrator, out=out, scene=scene,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,

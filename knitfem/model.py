@@ -87,20 +87,23 @@ class FullModel:
     """Full model of a ``Fabric``: yarn elements, M, C assembled in PETSc.
 
     Collective on ``comm``. ``nq`` Gauss points a segment; ``kernels`` one of
-    ``kernels.KINDS`` ("compiled" or "numpy").
+    ``kernels.KINDS`` ("compiled" or "numpy"); ``stretch`` False leaves the
+    yarns' stretching energy out (for an embedded model that measures it its
+    own way, ``midsurface.MidSurfaceStretch``).
     """
 
     kind = "full"
 
-    def __init__(self, comm, fabric, material, nq=4, kernels="compiled"):
+    def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
+                 stretch=True):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
         with EV_ASSEMBLY:
             self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)
             Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
-                                         material.rho, material.EA, material.EI,
-                                         nq=nq)
+                                         material.rho, material.EA if stretch else 0.0,
+                                         material.EI, nq=nq)
             self.kernels = yarn_kernels(self.elements, kernels)
             self.barrier = Barrier(fabric.bodies, self.elements, fabric.radius,
                                    material.rho * material.gravity,

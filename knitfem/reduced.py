@@ -10,7 +10,10 @@ M^V formed once by PETSc's PtAP. The tangent Γᵀ K Γ is formed densely from
 the values of K (``GroupedTangent``: a compiled kernel and one GEMM a patch
 of V) while the volume has at most ``DENSE_LIMIT`` control points and the
 kernels are compiled, and by PtAP, the symbolic product reused, otherwise.
-Contacts are dropped (the embedding keeps the stitches together); fixed
+With -knit_stretch shell the yarns' stretch is measured on the volume read
+as a shell, a stitch at a time (``shell.ShellStretch``), so that it bends
+and shears like a knit. Contacts are dropped (the embedding keeps the
+stitches together); fixed
 points and clamps stay, reduced to an independent set of rows (a
 rank-revealing SVD of cΓ̃), because several fixed points can say the same
 thing about α.
@@ -24,7 +27,7 @@ from .model import EV_FORCES, applied_forces, max_over_ranks
 from .options import KnitError
 from .volume import BoundingVolume
 
-__all__ = ["Embedding", "ReducedModel", "embedding_from_options"]
+__all__ = ["Embedding", "ReducedModel", "embedding_from_options", "stretch_options"]
 
 EV_EMBED = PETSc.Log.Event("knitEmbedding")
 EV_PTAP = PETSc.Log.Event("knitPtAP")
@@ -134,9 +137,11 @@ class GroupedTangent:
         return out
 
 
-def volume_options(opts):
-    """((n1, n2), path) from -knit_lod n1,n2 and -knit_volume FILE."""
-    lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
+def volume_options(opts, bodies=False):
+    """((n1, n2), path) from -knit_lod n1,n2 (default 5,5; 6,6 with bodies,
+    which a volume of three patches a way can wrap) and -knit_volume FILE."""
+    lod = opts.getInts("lod", (6, 6) if bodies else (5, 5), "bounding-volume "
+                       "control points n1,n2 (6,6 with -knit_collider or drape)", 2, 4)
     path = opts.getString("volume", "", "bounding volume file (meshio; default: "
                           "a box around the fabric at rest)")
     return lod, path
@@ -155,13 +160,32 @@ def sampling_options(opts, default="sampled"):
     return kind, tol
 
 
+def stretch_options(opts, bodies=False):
+    """How the reduced model measures its yarns' stretch, -knit_stretch
+    yarn|shell (default: shell where there are bodies to bend round)."""
+    return opts.getChoice("stretch", "shell" if bodies else "yarn",
+                          ("yarn", "shell"), "the reduced model's yarn stretch: "
+                          "of the yarn curves, or with the volume read as a "
+                          "shell (mid-surface and thickness), so that it bends "
+                          "without stretching its yarns (default: shell with "
+                          "-knit_collider, yarn otherwise)")
+
+
 def reduced_from_options(opts, full, embedding):
     """The ReducedModel of -knit_sampling: sampled (the set trained or read
-    from the cache, said in one line) unless exact is asked for or bodies
-    need every yarn point."""
+    from the cache, said in one line) unless exact is asked for, bodies
+    need every yarn point or the stretch is the mid-surface's
+    (-knit_stretch shell: ``full`` is then built without its own)."""
     from .sampling import SampledElements, over_ranks, quadrature_set, sampled_set
+    from .shell import ShellStretch
 
     kind, tol = sampling_options(opts)
+    if stretch_options(opts, bool(full.fabric.bodies)) == "shell":
+        if embedding.volume.size > DENSE_LIMIT or full.kernels.kind != "compiled":
+            raise KnitError(f"-knit_stretch shell needs the reduced model's dense "
+                            f"tangent: at most {DENSE_LIMIT} volume control points "
+                            f"(-knit_lod) and -knit_kernels compiled")
+        return ReducedModel(full, embedding, shell=ShellStretch(full, embedding))
     if kind == "exact" or full.fabric.bodies:
         return ReducedModel(full, embedding)
     if kind == "quadrature":
@@ -177,9 +201,12 @@ def reduced_from_options(opts, full, embedding):
 
 
 def sampling_note(system):
-    """The run header's words on a sampled model: |S|, the largest weight,
-    the force errors and where the set came from ('' for other models)."""
+    """The run header's words on a sampled model (|S|, the largest weight,
+    the force errors and where the set came from) or a shell-stretched one
+    ('' for other models)."""
     rep = getattr(system, "sampling", None)
+    if getattr(system, "shell", None) is not None:
+        return " (every yarn element, its stretch the shell's, a stitch at a time)"
     if not rep:
         return ""
     return (f" ({rep['kind']}: {rep['elements']} of {rep['of']} yarn elements, largest "
@@ -191,7 +218,7 @@ def embedding_from_options(opts, comm, fabric, layout=None):
     """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ."""
     from .assembly import YarnLayout
 
-    lod, path = volume_options(opts)
+    lod, path = volume_options(opts, bool(fabric.bodies))
     if path:
         try:
             volume = BoundingVolume.load(path)
@@ -327,8 +354,8 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
     def Gamma(self):
         return self.embedding.Gamma
 
-    def __init__(self, full, embedding, sampled=None):
-        self.embedding, self.sampled = embedding, sampled
+    def __init__(self, full, embedding, sampled=None, shell=None):
+        self.embedding, self.sampled, self.shell = embedding, sampled, shell
         G = embedding.Gamma
         self._embed(full, G, embedding.Gamma_scalar, "reduced_MV_")
         self._world_constraints()
@@ -338,7 +365,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                                      embedding.volume.size)
                       if embedding.volume.size <= DENSE_LIMIT and sampled is None
                       and full.kernels.kind == "compiled" else None)
-        if sampled is not None:        # every α on every rank, for S's points
+        if sampled is not None or shell is not None:   # every α on every rank
             self.gather, self.alpha_all = PETSc.Scatter.toAll(self.Qg)
         # the integrators' Newton matrices, too, are dense on one rank
         self.dense_saddle = (self.dense is not None or sampled is not None) \
@@ -405,7 +432,10 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         """E(Γq), or, sampled, Σ_{e∈S} ξ_e E_e: the energy this model's
         forces derive from, so that its energy balance is its own."""
         if self.sampled is None:
-            return super().elastic_energy(q)
+            E = super().elastic_energy(q)
+            if self.shell is not None:
+                E += self.comm.tompi4py().allreduce(self.shell.energy(self._all(q)))
+            return E
         return self.comm.tompi4py().allreduce(self.sampled.energy(self._all(q)))
 
     def forces(self, alpha, alphadot, Q):
@@ -419,13 +449,21 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.sampled is not None:
                 f = np.zeros((self.embedding.volume.size, 3))
                 self.sampled.add_forces(self._all(alpha), f)
-                lo, hi = Q.getOwnershipRange()
-                Q.getArray()[:] += self._summed(f).ravel()[lo:hi]
+                self._add_summed(f, Q)
                 return
             G.mult(alpha, self.eps)
             self.Qfull.zeroEntries()
             self.full.add_elastic_forces(self.eps, self.Qfull)
             G.multTransposeAdd(self.Qfull, Q, Q)
+            if self.shell is not None:
+                f = np.zeros((self.embedding.volume.size, 3))
+                self.shell.add_gradient(self._all(alpha), f, -1.0)
+                self._add_summed(f, Q)
+
+    def _add_summed(self, f, Q):
+        """Q += f (every volume control point's, (n, 3)) summed over the ranks."""
+        lo, hi = Q.getOwnershipRange()
+        Q.getArray()[:] += self._summed(f).ravel()[lo:hi]
 
     def stiffness(self, alpha, mu=None, weight=1.0, xref=None):
         """Γᵀ K(Γα) Γ: sampled, dense (``GroupedTangent``) or by PtAP,
@@ -438,8 +476,11 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         x = self.full_state(alpha, self.eps)
         ref = None if xref is None else self.full_state(xref, self.eps_ref)
         if self.dense is not None:
-            return self._dense_stiffness(
-                lambda R: self.dense(self.full.stiffness_values(x, ref), R))
+            def reduce(R):
+                self.dense(self.full.stiffness_values(x, ref), R)
+                if self.shell is not None:
+                    self.shell.add_hessian(self._all(alpha), R)
+            return self._dense_stiffness(reduce)
         K = self.full.stiffness(x, xref=ref)
         with EV_PTAP:
             if self.K is None:
@@ -482,7 +523,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             self.K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
 
     def destroy(self):
-        if self.sampled is not None:
+        if self.sampled is not None or self.shell is not None:
             self.gather.destroy()
             self.alpha_all.destroy()
         for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps,

@@ -219,24 +219,27 @@ class BoundingVolume:
         shape = s1.shape + (32,)
         return cols.reshape(shape), vals.reshape(shape)
 
-    def weights(self, s1, s2, w3):
+    def weights(self, s1, s2, w3, nu=(0, 0, 0)):
         """Rows of Γ̃: ε = Σ_c vals[c] q[cols[c]] for parameters (s₁, s₂, w₃).
 
             Γ̃_{i,k(j1+a, j2+b, 0)} = (1 − ω₃) b_a(ω₁) b_b(ω₂),
-            Γ̃_{i,k(j1+a, j2+b, 1)} =      ω₃  b_a(ω₁) b_b(ω₂).
+            Γ̃_{i,k(j1+a, j2+b, 1)} =      ω₃  b_a(ω₁) b_b(ω₂),
+
+        or, with ``nu``, those of the derivative ∂^nu P/∂(s₁, s₂, w₃)^nu.
 
         Parameters
         ----------
         s1, s2, w3 : array_like, broadcastable to shape (...)
+        nu : (int, int, int)
 
         Returns
         -------
         cols : ndarray of int, shape (..., 32)
             Volume DOF numbers k (distinct within a row).
         vals : ndarray, shape (..., 32)
-            Non-negative weights summing to 1.
+            Non-negative weights summing to 1 (for nu = 0).
         """
-        return self._rows(s1, s2, w3)
+        return self._rows(s1, s2, w3, nu)
 
     def points(self, s1, s2, w3):
         """P(s₁, s₂, w₃), shape (..., 3), for broadcastable parameters."""

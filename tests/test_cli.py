@@ -329,3 +329,22 @@ def test_krylov_rc_steps_as_the_direct_solver(tmp_path):
     assert krylov["newton_iterations"] == direct["newton_iterations"]
     assert krylov["ksp_iterations"] > direct["ksp_iterations"]       # iterated
     assert np.allclose(krylov["centroid"], direct["centroid"], rtol=0, atol=1e-12)
+
+
+def test_reduced_drape_defaults_to_the_shell_settling_in_backward_euler(tmp_path):
+    """A reduced model on a body: the shell's stretch in a 6 x 6 volume, backward
+    Euler in steps of 1e-2 s; the header and summary say so."""
+    p = knitfem("run", "-knit_scene", "drape", "-knit_model", "reduced", "-knit_rows", "6",
+                "-knit_cols", "6", "-knit_t_end", "0.03", "-knit_snapshots", "",
+                "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "its stretch the shell's" in p.stdout and "216 coordinates" in p.stdout
+    summary = json.load(open(tmp_path / "summary.json"))
+    assert summary["steps"] == 3 and summary["integrator"] == "implicit"
+
+
+def test_shell_stretch_beyond_the_dense_tangent_is_a_usage_error(tmp_path):
+    p = knitfem("run", "-knit_model", "reduced", "-knit_stretch", "shell",
+                "-knit_lod", "11,11", "-knit_rows", "3", "-knit_cols", "3",
+                "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "-knit_lod" in p.stderr

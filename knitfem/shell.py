@@ -1,0 +1,143 @@
+"""The reduced model's stretch: the volume read as a shell, a stitch's yarn
+length the measure.
+
+The embedding moves every yarn point with its volume, ε = Γα, and with the
+stretch of the yarn curve itself (``yarn``) the embedded knit is a plate and
+a membrane of yarn stiffness: bending the volume stretches the yarn by κ z
+through the thickness, and shearing or squeezing a stitch stretches its
+loop's legs and heads, where the knit bends and shears by turning and
+bending its loops and sliding yarn through them (which no embedding shows).
+Two changes make it bend and shear like a knit and keep what it resists,
+the length of yarn in a stitch:
+
+1. The shell tangent. At Gauss point q of a yarn element whose control
+   points sit at volume parameters ξ_a = (s₁, s₂, w₃)_a, the stretch is
+   measured on
+
+       t_q = ∇P(s̄_q, ½) ξ̄'_q = D_q α,   s̄_q = Σ_a b_a(u_q) (s₁, s₂)_a,
+       ξ̄'_q = Σ_a b'_a(u_q) ξ_a,
+
+   the volume's Jacobian on its mid-surface (w₃ = ½) under the point applied
+   to the yarn's tangent in parameter space: the yarn in the volume read as
+   a shell S(s) + (w₃ − ½) T(s), the thickness vector T taken where the
+   point projects. D_q (n) is constant and acts on each component of α;
+   where P is affine (the rest box) t_q is the yarn's own x'_q. An isometric
+   bend of S with T normal to it and of its length leaves every |t_q| alone.
+
+2. The stitch's strain. e_q = (|t_q|² − L_q²)/(2 L_q²), L_q = |D_q α₀|, is
+   averaged over the window w of a stitch (``window`` elements of a yarn,
+   ``pattern.SEGMENTS_PER_STITCH``), W_q = w_q L_q:
+
+       ē_w = Σ_{q∈w} W_q e_q / L_w,   L_w = Σ_{q∈w} W_q,   E_s = ½ EA Σ_w L_w ē_w².
+
+   A shear, or a squeeze that turns a loop, stretches its legs and shortens
+   its heads by as much: the stitch's yarn length, and E_s, stay.
+
+With f_q = EA L_w ē_w W_q / (L_w L_q²) and J_w = ∂ē_w/∂α = Σ_{q∈w} W_q/(L_w L_q²) D_qᵀ t_q,
+
+    ∂E_s/∂α = Σ_q f_q D_qᵀ t_q,   ∂²E_s/∂α² = Σ_q f_q D_qᵀ D_q ⊗ I₃ + Σ_w EA L_w J_w J_wᵀ,
+
+the first sum a patch of V at a time (the rows of D of the points over one
+patch share its 32 columns). Rigid motions of α turn every t_q: free.
+Bending stays the yarn curve's own, E_b(Γα).
+"""
+
+import numpy as np
+from scipy import sparse
+
+from .pattern import SEGMENTS_PER_STITCH
+
+__all__ = ["ShellStretch"]
+
+
+class ShellStretch:
+    """E_s of a full model's yarns (this rank's) embedded by ``embedding``,
+    the volume read as a shell, the strain averaged over windows of
+    ``window`` elements of a yarn (a last, shorter one where it does not
+    divide the yarn's). The full model must be built without its own stretch
+    (``FullModel(stretch=False)``). α is given as every volume control
+    point, (n, 3)."""
+
+    def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH):
+        vol, el = embedding.volume, full.elements
+        cols, vals = shell_rows(vol, embedding.params, el)
+        self.D = sparse.csr_matrix((vals.ravel(), cols.ravel(),
+                                    np.arange(0, cols.size + 1, cols.shape[1])),
+                                   shape=(len(cols), vol.size))
+        t = self.D @ vol.flat
+        self.L2 = np.einsum("qi,qi->q", t, t)
+        W = np.tile(el.weights, el.ne) * np.sqrt(self.L2)
+        self.EA = full.material.EA
+        nseg, e = full.fabric.nseg, np.arange(el.ne)
+        self.win = np.repeat((e // nseg) * -(-nseg // window) + (e % nseg) // window,
+                             len(el.weights))
+        nwin = self.win.max() + 1 if el.ne else 0
+        self.L = np.bincount(self.win, W, minlength=nwin)            # L_w
+        self.share = W / self.L[self.win]                            # W_q / L_w
+        mean = sparse.csc_matrix((self.share / self.L2, (self.win, np.arange(len(W)))),
+                                 shape=(nwin, len(W)))  # ∂ē_w/∂e_q / L_q²
+        # the points over each patch of V: their rows of D share 32 columns
+        keys, patch = np.unique(cols, axis=0, return_inverse=True)
+        patch = patch.ravel()
+        self.patches = []
+        for k, key in enumerate(keys):
+            rows = np.flatnonzero(patch == k)
+            touched = np.unique(self.win[rows])                  # their windows
+            dofs = (3 * key[:, None] + np.arange(3)).ravel()
+            self.patches.append((rows, key, vals[rows], touched, dofs,
+                                 mean[touched][:, rows].tocsr()))
+
+    def _strain(self, A):
+        """t_q (npts, 3) and ē_w (nwin,)."""
+        t = self.D @ A
+        e = 0.5 * (np.einsum("qi,qi->q", t, t) - self.L2) / self.L2
+        return t, np.bincount(self.win, self.share * e, minlength=len(self.L))
+
+    def energy(self, A):
+        """E_s = ½ EA Σ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
+        _, ebar = self._strain(A)
+        return 0.5 * self.EA * float(np.sum(self.L * ebar**2))
+
+    def add_gradient(self, A, out, scale=1.0):
+        """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
+        t, ebar = self._strain(A)
+        f = scale * self.EA * ebar[self.win] * self.L[self.win] * self.share / self.L2
+        out += self.D.T @ (f[:, None] * t)
+
+    def add_hessian(self, A, out):
+        """out (3n, 3n) += ∂²E_s/∂α², α interleaved (3c + i): the points'
+        Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and Jᵀ diag(EA L) J."""
+        t, ebar = self._strain(A)
+        f = self.EA * ebar[self.win] * self.L[self.win] * self.share / self.L2
+        n = self.D.shape[1]
+        S = np.zeros((n, n))
+        J = np.zeros((len(self.L), 3 * n))
+        for rows, key, Dp, touched, dofs, mean in self.patches:
+            S[np.ix_(key, key)] += Dp.T @ (Dp * f[rows, None])
+            Dt = (Dp[:, :, None] * t[rows, None, :]).reshape(len(rows), -1)
+            J[np.ix_(touched, dofs)] += mean @ Dt
+        H = out.reshape(n, 3, n, 3)
+        for i in range(3):
+            H[:, i, :, i] += S
+        out += J.T @ (J * (self.EA * self.L)[:, None])
+
+def shell_rows(volume, params, elements):
+    """Columns and values (npts, 32) of the rows D_q of ``elements``' Gauss
+    points, t_q = ∇P(s̄_q, ½) ξ̄'_q, from their control points' parameters
+    ``params`` (s₁, s₂, w₃); s₁ of a periodic volume read modulo its period
+    (an element's points unwrapped first)."""
+    el = elements
+    xi = np.stack(params, axis=-1)[el.conn]                      # (ne, 4, 3)
+    if volume.periodic:
+        n = volume.domain[0]
+        ref = xi[:, :1, 0]
+        xi[..., 0] = ref + np.mod(xi[..., 0] - ref + n / 2, n) - n / 2
+    bar = np.einsum("qa,eak->eqk", el.B, xi).reshape(-1, 3)      # ξ̄_q
+    dxi = np.einsum("qa,eak->eqk", el.dB, xi).reshape(-1, 3)     # ξ̄'_q
+    if volume.periodic:
+        bar[:, 0] = np.mod(bar[:, 0], n)
+    vals = 0.0
+    for k, nu in enumerate(((1, 0, 0), (0, 1, 0), (0, 0, 1))):
+        cols, v = volume.weights(bar[:, 0], bar[:, 1], 0.5, nu)
+        vals = vals + dxi[:, k, None] * v
+    return cols, vals
