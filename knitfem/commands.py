@@ -265,31 +265,30 @@ def colliders_from_options(opts):
         raise KnitError(f"-knit_collider: {err}") from None
 
 
-SETTLING = {("drape", "reduced"): ("implicit", 1e-2)}
-"""Default (integrator, fixed step) by (scene, model) where the answer is a
-rest state on a body: the reduced knit's soft loops ring against the body,
-which BDF2's error control follows in steps of 1e-5 s until the run stalls;
-backward Euler damps the ringing and settles in 1e-2 s steps. (The full
-model keeps BDF2: its stiff yarns take hundreds of Newton iterations a step
-at 1e-2 s.)"""
+SETTLING = ("implicit", 1e-2)
+"""Default (integrator, fixed step) of a reduced model on bodies: its soft
+loops ring against the body, which BDF2's error control follows in steps of
+1e-5 s (the drape stalls, the sleeve takes 3 473 steps for 0.5 s); backward
+Euler damps the ringing and settles in 1e-2 s steps. (The full model keeps
+BDF2: its stiff yarns take hundreds of Newton iterations a step at 1e-2 s.)"""
 
 
-def integrator_from_options(opts, scene=None, model=None):
+def integrator_from_options(opts, settle=False):
     """The integrator of -knit_integrator with its step control: fixed steps
     under -knit_dt, else error-controlled (-knit_rtol, -knit_atol); by
-    default ``SETTLING``'s for the scene and model. Returns a function of the
-    system (the options are read now)."""
+    default ``SETTLING``'s with ``settle``. Returns a function of the system
+    (the options are read now)."""
     from solvers.integrators import INTEGRATORS, GeneralizedAlpha
     from solvers.stepping import StepControl
 
-    method0, fixed0 = SETTLING.get((scene, model), ("bdf2", 0.0))
+    method0, fixed0 = SETTLING if settle else ("bdf2", 0.0)
     method = opts.getChoice("integrator", method0, tuple(INTEGRATORS),
                             "integrator: BDF2, generalized-alpha (both 2nd order), "
-                            "backward Euler, symplectic Euler (explicit) (the "
-                            "reduced drape: implicit, else bdf2)")
+                            "backward Euler, symplectic Euler (explicit) (a "
+                            "reduced model on bodies: implicit, else bdf2)")
     dt = opts.getReal("dt", fixed0 if method == method0 else 0.0,
-                      "fixed time step [s] (0: error-controlled steps; the "
-                      "reduced drape: 1e-2 with its implicit default)",
+                      "fixed time step [s] (0: error-controlled steps; a "
+                      "reduced model on bodies: 1e-2 with its implicit default)",
                       nonnegative=True)
     rtol = opts.getReal("rtol", 2e-4, "relative tolerance of the local error",
                         nonnegative=True)
@@ -361,7 +360,9 @@ def run(comm):
                             "integrators; drape: 0.5, others 0)", nonnegative=True)
     material = material_from_options(opts, scene)
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
-    make_integrator = integrator_from_options(opts, scene, model_options(opts)[0])
+    kind = model_options(opts)[0]
+    make_integrator = integrator_from_options(
+        opts, settle=kind == "reduced" and (bool(bodies) or scene == "drape"))
     unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
                             "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
