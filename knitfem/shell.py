@@ -98,17 +98,20 @@ class ShellStretch:
         _, ebar = self._strain(A)
         return 0.5 * self.EA * float(np.sum(self.L * ebar**2))
 
+    def _forces(self, A):
+        """t_q and f_q = EA L_w ē_w W_q / (L_w L_q²) at every point."""
+        t, ebar = self._strain(A)
+        return t, self.EA * (self.L * ebar)[self.win] * self.share / self.L2
+
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
-        t, ebar = self._strain(A)
-        f = scale * self.EA * ebar[self.win] * self.L[self.win] * self.share / self.L2
-        out += self.D.T @ (f[:, None] * t)
+        t, f = self._forces(A)
+        out += self.D.T @ (scale * f[:, None] * t)
 
     def add_hessian(self, A, out):
         """out (3n, 3n) += ∂²E_s/∂α², α interleaved (3c + i): the points'
         Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and Jᵀ diag(EA L) J."""
-        t, ebar = self._strain(A)
-        f = self.EA * ebar[self.win] * self.L[self.win] * self.share / self.L2
+        t, f = self._forces(A)
         n = self.D.shape[1]
         S = np.zeros((n, n))
         J = np.zeros((len(self.L), 3 * n))
@@ -120,6 +123,7 @@ class ShellStretch:
         for i in range(3):
             H[:, i, :, i] += S
         out += J.T @ (J * (self.EA * self.L)[:, None])
+
 
 def shell_rows(volume, params, elements):
     """Columns and values (npts, 32) of the rows D_q of ``elements``' Gauss
