@@ -196,6 +196,8 @@ def build(comm):
     material = material_from_options(opts)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
+    tangent = opts.getChoice("tangent", "auto", ("auto", "exact", "mip"),
+                             "Newton matrix, as knitfem run's -knit_tangent")
     clock = [time.perf_counter()]
 
     def lap():
@@ -208,7 +210,8 @@ def build(comm):
     system = build_system(comm, opts, fabric, material)
     t_model = lap()
     with PETSc.Log.Stage("Solver set-up"):
-        integrator = INTEGRATORS[method](system, dt)
+        integrator = (INTEGRATORS[method](system, dt) if method == "symplectic"
+                      else INTEGRATORS[method](system, dt, tangent=tangent))
     return system, integrator, dict(fabric=t_fabric, model=t_model,
                                     integrator=lap())
 
