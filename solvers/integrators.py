@@ -529,18 +529,27 @@ class BackwardEuler(NewtonStepper):
         M (ε̇_{n+1} − ε̇_n) = h Q(ε_{n+1}, ε̇_{n+1}) + h Cᵀλ,
 
     (σ = κ = h, w = 1, v̂ = ε̇_n, ε̂ = ε_n), so A = h² K + (1 + h c_d) M.
-    Predictor ε̇_n + h a_n with a_n = (ε̇_n − ε̇_{n−1}) / h_{n−1}; local error
-    e = ½ h² ε̈ (``PositionHistory`` with c = ½; on the first step
-    ½ h (ε̇_{n+1} − ε̇_n)).
+    Predictor ε̇_n + h a_n with a_n = (ε̇_n − ε̇_{n−1}) / h_{n−1}, or, with
+    ``guess="start"``, ε̇ = 0: Newton from the step's start ε_n, which a
+    knit on a body can always reach (an extrapolation drives a falling knit
+    into the body's barrier: the 12×12 reduced drape takes 1 542 Newton
+    iterations from it, 825 from the start). Local error e = ½ h² ε̈
+    (``PositionHistory`` with c = ½; on the first step ½ h (ε̇_{n+1} − ε̇_n)).
     """
 
     name = "implicit"
     order = 1
 
-    def __init__(self, system, dt, control=None, **kw):
+    def __init__(self, system, dt, control=None, guess="extrapolated", **kw):
         super().__init__(system, dt, control, **kw)
+        if guess not in ("extrapolated", "start"):
+            raise ValueError(f"guess {guess!r}: expected extrapolated or start")
+        self.guess = guess
         self.a = system.M.createVecLeft()      # backward-difference ε̈_n
         self.history = PositionHistory(1, 0.5)
+
+    def settings(self):
+        return dict(super().settings(), guess=self.guess)
 
     def coefficients(self, h):
         self.sigma = self.kappa = h
@@ -549,7 +558,10 @@ class BackwardEuler(NewtonStepper):
         self.xn.copy(self.xhat)
 
     def predict(self, h, v):
-        v.waxpy(h, self.a, self.vn)
+        if self.guess == "start":
+            v.zeroEntries()
+        else:
+            v.waxpy(h, self.a, self.vn)
 
     def one_step_error(self, h):
         self.e.waxpy(-1.0, self.vn, self.v)
