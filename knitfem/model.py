@@ -89,7 +89,7 @@ class FullModel:
     Collective on ``comm``. ``nq`` Gauss points a segment; ``kernels`` one of
     ``kernels.KINDS`` ("compiled" or "numpy"); ``stretch`` False leaves the
     yarns' stretching energy out (for an embedded model that measures it its
-    own way, ``midsurface.MidSurfaceStretch``).
+    own way, ``shell.ShellStretch``).
     """
 
     kind = "full"
@@ -97,6 +97,7 @@ class FullModel:
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
                  stretch=True):
         self.comm, self.fabric, self.material = comm, fabric, material
+        self.stretch = stretch
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
         with EV_ASSEMBLY:
             self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)

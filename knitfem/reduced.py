@@ -174,13 +174,13 @@ def stretch_options(opts, bodies=False):
 def reduced_from_options(opts, full, embedding):
     """The ReducedModel of -knit_sampling: sampled (the set trained or read
     from the cache, said in one line) unless exact is asked for, bodies
-    need every yarn point or the stretch is the mid-surface's
-    (-knit_stretch shell: ``full`` is then built without its own)."""
+    need every yarn point or the stretch is the shell's (-knit_stretch
+    shell: ``full`` was built without its own, ``stretch_options``)."""
     from .sampling import SampledElements, over_ranks, quadrature_set, sampled_set
     from .shell import ShellStretch
 
     kind, tol = sampling_options(opts)
-    if stretch_options(opts, bool(full.fabric.bodies)) == "shell":
+    if not full.stretch:
         if embedding.volume.size > DENSE_LIMIT or full.kernels.kind != "compiled":
             raise KnitError(f"-knit_stretch shell needs the reduced model's dense "
                             f"tangent: at most {DENSE_LIMIT} volume control points "

@@ -143,3 +143,30 @@ def test_shearing_a_stitch_keeps_its_yarn_length(pair):
     element = ShellStretch(red.full, red.embedding, window=1)
     assert max(stitch.energy(flat), element.energy(flat)) < 1e-30
     assert stitch.energy(sheared) < 1e-3 * element.energy(sheared)
+
+
+def test_a_turned_problem_gives_turned_forces_and_the_same_energy(shell):
+    """A strained state turned and moved rigidly: the same energy, its
+    forces turned with it."""
+    red = shell
+    a = perturbed(red, 4)
+    R = rotation([2, -1, 3], 1.1)
+    b = a.copy()
+    P = b.getArray().reshape(-1, 3)
+    P[:] = P @ R.T + [0.05, 0.2, -0.1]
+    assert np.isclose(red.elastic_energy(b), red.elastic_energy(a), rtol=1e-9)
+    Qa = forces(red, a).getArray().reshape(-1, 3)
+    Qb = forces(red, b).getArray().reshape(-1, 3)
+    assert np.allclose(Qb, Qa @ R.T, atol=1e-9 * np.abs(Qa).max())
+
+
+def test_shell_tangent_is_the_yarns_own_where_the_volume_is_affine(pair):
+    """The shell reading leaves out only what a bend adds: under any affine
+    map of the volume every t_q is the yarn curve's x'_q (round-off)."""
+    own, red = pair
+    F = np.array([[1.1, 0.2, 0.05], [-0.1, 0.9, 0.3], [0.02, 0.1, 1.2]])
+    A = red.embedding.volume.flat @ F.T + [0.1, 0.0, -0.2]
+    x = red.embedding.scalar_dense() @ A
+    t = red.shell.D @ A
+    xp = red.full.elements.tangents(x)[:, :, 0].reshape(-1, 3)
+    assert np.abs(t - xp).max() < 1e-12 * np.abs(xp).max()
