@@ -53,6 +53,12 @@ def csr_rows(indptr):
     return np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
 
 
+def csr_positions(indptr, first):
+    """Where every entry of a CSR pattern goes when its row i starts at
+    ``first``[i] of another: first[i] + (k − indptr[i]) for entry k of row i."""
+    return np.repeat(first - indptr[:-1], np.diff(indptr)) + np.arange(indptr[-1])
+
+
 class ElementPattern:
     """Scalar CSR pattern of elements and the slot of each element entry.
 

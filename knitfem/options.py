@@ -15,6 +15,8 @@ import difflib
 import numpy as np
 from petsc4py import PETSc
 
+from solvers.libpetsc import Int, library
+
 __all__ = ["KnitError", "KnitOptions", "unused_options"]
 
 OURS = ("knit_", "bench_")
@@ -165,18 +167,11 @@ class KnitOptions:
         return False
 
 
-def petsc_library():
-    """(PETSc's C library under petsc4py, ctypes' PetscInt), for the few
-    calls petsc4py 3.18 does not wrap."""
-    Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
-    return ctypes.CDLL(PETSc.__file__), Int
-
-
 def unused_options():
     """Names of the options in PETSc's database that nothing has read
     (PetscOptionsLeftGet; empty where the symbol cannot be found)."""
     try:
-        lib, Int = petsc_library()
+        lib = library()
         get, restore = lib.PetscOptionsLeftGet, lib.PetscOptionsLeftRestore
     except (OSError, AttributeError):
         return []

@@ -33,12 +33,15 @@ counts and states over three steps of the 10×20 jersey); ``-<prefix>ksp_type gm
 solves K itself, in one or two iterations.
 """
 
+from contextlib import nullcontext
+
 import numpy as np
 from petsc4py import PETSc
 
-from knitfem.assembly import csr_rows
+from knitfem.assembly import csr_positions, csr_rows
 
 from .coo import coo_matrix, set_values
+from .libpetsc import Int, library, seqaij_values
 
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
            "ksp_failure", "failure_or_retry", "pc_failure"]
@@ -86,13 +89,11 @@ class SaddlePoint:
         self.k_ranges = np.add(A.getOwnershipRanges(), C.getOwnershipRanges())
         if comm.getSize() > 1:
             self._coo_values()
+        elif dense:
+            self.aij = self.nest.convert("aij", PETSc.Mat())
+            self.K = self.aij.convert("dense", PETSc.Mat())
         else:
-            self.K = self.nest.convert("aij", PETSc.Mat())
-            self.K.setBlockSize(1)
-            if dense:
-                self.aij, self.K = self.K, self.K.convert("dense", PETSc.Mat())
-            else:
-                self._own_values()
+            self._own_values()
         tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
         self.P = self.K if tau == 0 else self.regularized(tau)
         if comm.getSize() > 1:
@@ -100,26 +101,33 @@ class SaddlePoint:
 
     def _own_values(self):
         """On one rank K is built on a value array of its own (``arrays``),
-        and ``slot`` takes the concatenated values of A, Cᵀ and C to their
-        places in it; Cᵀ's values are C's permuted by ``transpose``."""
-        (ours, cols), order = self._value_layout()
-        indptr, indices, values = self.K.getValuesCSR()
-        n, nu = self.K.getSize()[0], self.nu
-        # K's rows are ours (columns ascending: A's, then Cᵀ's; or C's), each
-        # multiplier row ending in its explicit zero diagonal
-        lam = np.arange(self.nl)
-        before = np.repeat(np.maximum(np.arange(n) - nu, 0), np.diff(ours))
-        self.slot = np.empty(len(cols), dtype=np.int64)
-        self.slot[order] = np.arange(len(cols)) + before
-        self.diagonal = ours[nu + 1:] + lam                        # the −δI block
-        if not (np.array_equal(indices[self.slot[order]], cols)
-                and np.array_equal(indices[self.diagonal], nu + lam)):
-            raise RuntimeError("K's pattern is not [A Cᵀ; C diagonal] row by row")
+        its CSR laid out from A's and C's without a sort of its entries: row
+        i < nu is A's row i, then Cᵀ's (columns nu + r); row nu + r is C's
+        row r, then its zero diagonal. ``slots`` are the places of A's, Cᵀ's
+        and C's values in it; Cᵀ's values are C's permuted by ``transpose``
+        (C's entries ordered by column, rows ascending)."""
+        nu, nl = self.nu, self.nl
+        ai, aj, _ = self.A.getValuesCSR()
         ci, cj, _ = self.C.getValuesCSR()
-        self.transpose = np.lexsort((np.repeat(np.arange(len(ci) - 1), np.diff(ci)), cj))
-        self.K.destroy()
-        self.arrays = [values]
-        self.K = self._on_array(n, indptr, indices, values)
+        self.transpose = np.argsort(cj, kind="stable")
+        ti = np.searchsorted(cj[self.transpose], np.arange(nu + 1))
+        la, lt, lc = np.diff(ai), np.diff(ti), np.diff(ci)
+        indptr = np.zeros(nu + nl + 1, dtype=PETSc.IntType)
+        np.cumsum(np.concatenate([la + lt, lc + 1]), out=indptr[1:])
+        first = indptr.astype(np.int64)
+        a_pos = csr_positions(ai, first[:nu])
+        t_pos = csr_positions(ti, first[:nu] + la)
+        c_pos = csr_positions(ci, first[nu:-1])
+        self.slots = a_pos, t_pos, c_pos
+        self.diagonal = first[nu + 1:] - 1                       # the −δI block
+        indices = np.empty(indptr[-1], dtype=PETSc.IntType)
+        indices[a_pos] = aj
+        indices[t_pos] = nu + csr_rows(ci)[self.transpose]
+        indices[c_pos] = cj
+        indices[self.diagonal] = nu + np.arange(nl)
+        self.arrays = [np.zeros(indptr[-1], dtype=PETSc.ScalarType)]
+        self._write_arrays()
+        self.K = self._on_array(nu + nl, indptr, indices, self.arrays[0])
 
     @staticmethod
     def _on_array(n, indptr, indices, values):
@@ -165,32 +173,11 @@ class SaddlePoint:
         owner = np.searchsorted(ranges, cols, side="right") - 1
         return cols - ranges[owner] + self.k_ranges[owner] + shift[owner]
 
-    def _value_layout(self):
-        """K's rows in CSR made of A's and Cᵀ's rows, then C's, and the
-        permutation ``order`` that takes the concatenated values of A, Cᵀ
-        and C to it (one rank)."""
-        a, c = (np.asarray(M.getOwnershipRanges()) for M in (self.A, self.C))
-        rows, cols = [], []
-        for M, ranges, shift, row0 in ((self.A, a, 0 * a, 0),
-                                       (self.Ct, c, np.diff(a), 0),
-                                       (self.C, a, 0 * a, self.nu)):
-            indptr, j, _ = M.getValuesCSR()
-            rows.append(row0 + csr_rows(indptr))
-            cols.append(self._to_k(j, ranges, shift))
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        order = np.argsort(rows, kind="stable")
-        indptr = np.searchsorted(rows[order], np.arange(self.nu + self.nl + 1))
-        return (indptr.astype(PETSc.IntType),
-                cols[order].astype(PETSc.IntType)), order
-
     def update(self, constraints=False):
         """Refresh K after A's values changed, and C's with ``constraints``
         (same nonzero patterns)."""
         if self.arrays is not None:
-            c = self.C.getValuesCSR()[2]
-            values = np.concatenate([self.A.getValuesCSR()[2], c[self.transpose], c])
-            for array in self.arrays:
-                array[self.slot] = values
+            self._write_arrays()
             for K in (self.K, self.P) if self.P is not self.K else (self.K,):
                 K.assemble()                 # a new state: factorisations redo
             return
@@ -202,6 +189,16 @@ class SaddlePoint:
             a, c = self.A.getValuesCSR()[2], self.C.getValuesCSR()[2]
             for K, diagonal in self.coo_targets:
                 set_values(K, np.concatenate([a, c, c, diagonal]))
+
+    def _write_arrays(self):
+        """A's and C's values into their places in K's value arrays (read
+        where A and C keep them when they are sequential AIJ)."""
+        a, t, c = self.slots
+        with aij_values(self.A, len(a)) as va, aij_values(self.C, len(c)) as vc:
+            for array in self.arrays:
+                array[a] = va
+                array[t] = vc[self.transpose]
+                array[c] = vc
 
     def _dense_update(self, constraints):
         """A dense K written in place: A's block from A's values when A's
@@ -247,6 +244,14 @@ class SaddlePoint:
             for obj in (self.Ct, self.Z, self.nest, self.K, self.aij, P):
                 if obj is not None:
                     obj.destroy()
+
+
+def aij_values(A, nnz):
+    """A context giving the ``nnz`` values of AIJ matrix A in CSR order: a
+    view of its own storage when it is sequential, else a copy."""
+    if A.getType() == PETSc.Mat.Type.SEQAIJ:
+        return seqaij_values(A, nnz)
+    return nullcontext(A.getValuesCSR()[2])
 
 
 def regularization_option(prefix, comm):
@@ -370,9 +375,7 @@ def pc_failure(pc):
     PCGetFailedReason and MatFactorGetErrorZeroPivot through ctypes)."""
     import ctypes
 
-    from knitfem.options import petsc_library
-
-    (lib, Int), code = petsc_library(), ctypes.c_int(0)
+    lib, code = library(), ctypes.c_int(0)
     lib.PCGetFailedReason(ctypes.c_void_p(pc.handle), ctypes.byref(code))
     where = f"PC {pc.getType()}"
     if pc.getType() == "fieldsplit":

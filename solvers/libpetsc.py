@@ -1,0 +1,55 @@
+"""PETSc's C library, for the few calls petsc4py 3.18 does not wrap.
+
+``library()`` opens it through petsc4py's own extension module (dlsym then
+finds every PETSc symbol among that module's dependencies), so it is the
+library petsc4py runs on, whatever its path.
+"""
+
+import ctypes
+from contextlib import contextmanager
+
+import numpy as np
+from petsc4py import PETSc
+
+__all__ = ["library", "Int", "check", "seqaij_values"]
+
+Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+
+_LIB = None
+
+
+def library():
+    """PETSc's C library (opened once)."""
+    global _LIB
+    if _LIB is None:
+        _LIB = ctypes.CDLL(PETSc.__file__)
+        _LIB.MatSetPreallocationCOO.argtypes = [ctypes.c_void_p, ctypes.c_int64,
+                                                ctypes.c_void_p, ctypes.c_void_p]
+        _LIB.MatSetValuesCOO.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+        for name in ("MatSeqAIJGetArrayRead", "MatSeqAIJRestoreArrayRead"):
+            getattr(_LIB, name).argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+    return _LIB
+
+
+def check(code, call):
+    """Raise if a PETSc call returned an error code."""
+    if code:
+        raise RuntimeError(f"{call} failed with PETSc error {code}")
+
+
+@contextmanager
+def seqaij_values(A, nnz):
+    """The ``nnz`` values of a sequential AIJ matrix as a read-only array on
+    its own storage (MatSeqAIJGetArrayRead; ``getValuesCSR`` copies the
+    whole CSR), valid inside the ``with``."""
+    lib, ptr = library(), ctypes.c_void_p()
+    check(lib.MatSeqAIJGetArrayRead(A.handle, ctypes.byref(ptr)),
+          "MatSeqAIJGetArrayRead")
+    try:
+        values = np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctypes.c_double)),
+                                       shape=(nnz,))
+        values.flags.writeable = False
+        yield values
+    finally:
+        check(lib.MatSeqAIJRestoreArrayRead(A.handle, ctypes.byref(ptr)),
+              "MatSeqAIJRestoreArrayRead")
