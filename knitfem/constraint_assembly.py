@@ -8,7 +8,8 @@ rows. A rank owns the rows of its yarns.
 
 C(ε) keeps one sparsity pattern for the run: a contact row couples the 8
 control points of its two yarn points in all three components (24 entries),
-a hold row 4 points in its own component. Its values are written in place.
+a hold row 4 points in its own component. Its values are written in place,
+into the array C holds (``solvers.aij.OwnAIJ``).
 
 Ghosts. A contact owned by course k reads the control points of course
 k + 1, which may live on the next rank; the curvature term of a contact
@@ -24,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from .assembly import create_aij
+from solvers.aij import OwnAIJ
 
 __all__ = ["ConstraintAssembly"]
 
@@ -65,7 +66,7 @@ class ConstraintAssembly:
         length = np.zeros(3 * self.nlocal, dtype=np.int64)
         length[crow[:, None] + np.arange(3)] = 24
         length[hrow[:, None] + np.arange(3)] = 4
-        self.indptr = np.concatenate([[0], np.cumsum(length)]).astype(PETSc.IntType)
+        indptr = np.concatenate([[0], np.cumsum(length)]).astype(PETSc.IntType)
         # control points read: the local contacts' 8 and the holds' 4
         hi_ent = holds.indptr[self.mine_h][:, None] + np.arange(4)
         hcols = holds.indices[hi_ent].reshape(-1, 4)
@@ -74,24 +75,25 @@ class ConstraintAssembly:
         self.ghost_c = inv[:8 * len(self.mine)].reshape(-1, 8)
         self.ghost_h = inv[8 * len(self.mine):].reshape(-1, 4)
         # positions of the values: contact row 3v + j holds (k, d) at 3k + d
-        self.cslot = (self.indptr[crow][:, None, None, None]
+        self.cslot = (indptr[crow][:, None, None, None]
                       + 24 * np.arange(3)[None, :, None, None]
                       + 3 * np.arange(8)[None, None, :, None]
                       + np.arange(3)[None, None, None, :])          # (n, 3, 8, 3)
-        self.hslot = (self.indptr[hrow][:, None, None]
+        self.hslot = (indptr[hrow][:, None, None]
                       + 4 * np.arange(3)[None, :, None]
                       + np.arange(4)[None, None, :])                # (n, 3, 4)
-        indices = np.empty(self.indptr[-1], dtype=PETSc.IntType)
+        indices = np.empty(indptr[-1], dtype=PETSc.IntType)
         indices[self.cslot] = 3 * contacts.cols[self.mine][:, None, :, None] \
             + np.arange(3)
         indices[self.hslot] = 3 * hcols[:, None, :] + np.arange(3)[None, :, None]
-        self.values = np.zeros(self.indptr[-1])
-        self.values[self.hslot] = holds.values[hi_ent][:, None, :]
-        self.indices = indices
         n, N = 3 * layout.ncp_local, 3 * layout.ncp
         k, K = 3 * self.nlocal, 3 * self.count
-        self.C = create_aij(comm, (k, K), (n, N),
-                            (self.indptr, self.indices, self.values), bsize=3)
+        self.own = OwnAIJ.from_csr(comm, ((k, K), (n, N)), indptr, indices, bsize=3)
+        self.cslot, self.hslot = self.own.place(self.cslot), self.own.place(self.hslot)
+        self.values = self.own.values
+        self.values[self.hslot] = holds.values[hi_ent][:, None, :]
+        self.C = self.own.mat
+        self.C.assemble()
         self.C.setOptionsPrefix("full_C_")
         self.rhs = holds.rhs[self.mine_h]
         self.hrow = hrow
@@ -138,7 +140,6 @@ class ConstraintAssembly:
             P = self._points(x)
             grad = self.local.gradients(P[self.ghost_c])
             self.values[self.cslot] = grad
-            self.C.setValuesCSR(self.indptr, self.indices, self.values)
             self.C.assemble()
         return self.C
 

@@ -16,9 +16,9 @@ interface.
 
 The element loops run in the kernels of ``kernels.py`` (compiled by default,
 the numpy reference with ``kernels="numpy"``); they add the elastic forces
-into Q's array and write K's values in place: on one rank K is created on
-the model's own CSR arrays, so no copy reaches PETSc; on several ranks the
-values go in by one MatSetValuesCOO.
+into Q's array and write K's values in place: K is created on the model's
+own value array (``solvers.aij.OwnAIJ``, on several ranks as PETSc's two
+blocks of a rank's rows), so no copy reaches PETSc.
 """
 
 from dataclasses import dataclass
@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
-from solvers.coo import coo_matrix, set_values
+from solvers.aij import OwnAIJ
 
 from . import constraints as cons
-from .assembly import ElementPattern, YarnLayout, create_aij, csr_rows, kron_identity
+from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
 from .colliders import Barrier
 from .constraint_assembly import ConstraintAssembly
 from .kernels import yarn_kernels
@@ -246,22 +246,25 @@ class FullModel:
         return self._slot3
 
     def _tangent_pattern(self):
-        """K's pattern (indptr3, indices3): the yarn elements and the contacts'
-        curvature; the slots of the yarn elements' entries in it
-        (``tangent_slot3``); the constraints' curvature operator in it. Made
-        when K is first needed."""
+        """K on the pattern of the yarn elements and the contacts' curvature
+        (``pattern.blocks3``), holding ``tangent_values`` itself; the places
+        of the yarn elements' entries in it (``tangent_slot3``); the
+        constraints' curvature operator into it. Made when K is first
+        needed."""
         lay, cons_asm = self.layout, self.constraints
         with EV_ASSEMBLY:
             tangent = ElementPattern([self.conn, cons_asm.element_cols()],
                                      lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
-            self.indptr3 = indptr3.astype(PETSc.IntType)
-            self.indices3 = indices3.astype(PETSc.IntType)
-            self.tangent_slot3 = np.ascontiguousarray(slot3_yarn, dtype=np.int64)
-            self.tangent_values = np.zeros(len(self.indices3), dtype=PETSc.ScalarType)
-            cons_asm.B = cons_asm.curvature_operator(slot3_contacts,
-                                                     len(self.indices3))
-        self._tangent = True
+            n, N = 3 * lay.ncp_local, 3 * lay.ncp
+            K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
+            self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn), dtype=np.int64)
+            self.tangent_values = K.values
+            cons_asm.B = cons_asm.curvature_operator(K.place(slot3_contacts),
+                                                     len(indices3))
+            self.K = K.mat
+            self.K.setOptionsPrefix("full_K_")
+        self._tangent = K
 
     def stiffness_values(self, x, xref=None):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
@@ -287,9 +290,8 @@ class FullModel:
         elements and the contacts; μ a Vec of C's row layout, or None;
         ``xref`` the MIP reference of ``stiffness_values``.
 
-        On one rank K holds ``tangent_values`` itself
-        (``createAIJWithArrays``); on several, K is a COO matrix of the
-        pattern's entries (``solvers.coo``) and they are set in one call."""
+        K holds ``tangent_values`` itself: they are written, then K is
+        assembled (a new state: factorisations redo)."""
         if self._tangent is None:
             self._tangent_pattern()
         values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
@@ -297,26 +299,8 @@ class FullModel:
             with EV_TANGENT:
                 self.constraints.add_curvature(mu, weight, values)
         with EV_ASSEMBLY:
-            if self.K is None:
-                self.K = self._create_stiffness(values)
-            if self.comm.size > 1:
-                set_values(self.K, values)     # assembles it: a new state
-            else:
-                self.K.assemble()              # a new state: factorisations redo
-            return self.K
-
-    def _create_stiffness(self, values):
-        n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp
-        if self.comm.size > 1:
-            rows = 3 * self.layout.cp_start + csr_rows(self.indptr3)
-            K = coo_matrix(self.comm, ((n, N), (n, N)), rows, self.indices3, bsize=3)
-        else:
-            K = PETSc.Mat().createAIJWithArrays(
-                (n, N), (self.indptr3, self.indices3, values), comm=self.comm)
-            K.setBlockSize(3)
-            K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        K.setOptionsPrefix("full_K_")
-        return K
+            self.K.assemble()
+        return self.K
 
     def yarn_blocks(self, size, overlap):
         """Subdomains of whole courses for an additive Schwarz method on

@@ -23,11 +23,9 @@ def library():
     global _LIB
     if _LIB is None:
         _LIB = ctypes.CDLL(PETSc.__file__)
-        _LIB.MatSetPreallocationCOO.argtypes = [ctypes.c_void_p, ctypes.c_int64,
-                                                ctypes.c_void_p, ctypes.c_void_p]
-        _LIB.MatSetValuesCOO.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
         for name in ("MatSeqAIJGetArrayRead", "MatSeqAIJRestoreArrayRead"):
             getattr(_LIB, name).argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        _LIB.MatMPIAIJGetSeqAIJ.argtypes = [ctypes.c_void_p] * 4
     return _LIB
 
 
@@ -38,18 +36,18 @@ def check(code, call):
 
 
 @contextmanager
-def seqaij_values(A, nnz):
-    """The ``nnz`` values of a sequential AIJ matrix as a read-only array on
-    its own storage (MatSeqAIJGetArrayRead; ``getValuesCSR`` copies the
-    whole CSR), valid inside the ``with``."""
+def seqaij_values(handle, nnz):
+    """The ``nnz`` values of a sequential AIJ matrix (its C handle) as a
+    read-only array on its own storage (MatSeqAIJGetArrayRead;
+    ``getValuesCSR`` copies the whole CSR), valid inside the ``with``."""
     lib, ptr = library(), ctypes.c_void_p()
-    check(lib.MatSeqAIJGetArrayRead(A.handle, ctypes.byref(ptr)),
+    check(lib.MatSeqAIJGetArrayRead(handle, ctypes.byref(ptr)),
           "MatSeqAIJGetArrayRead")
     try:
         values = np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctypes.c_double)),
-                                       shape=(nnz,))
+                                       shape=(nnz,)) if nnz else np.empty(0)
         values.flags.writeable = False
         yield values
     finally:
-        check(lib.MatSeqAIJRestoreArrayRead(A.handle, ctypes.byref(ptr)),
+        check(lib.MatSeqAIJRestoreArrayRead(handle, ctypes.byref(ptr)),
               "MatSeqAIJRestoreArrayRead")

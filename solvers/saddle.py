@@ -1,20 +1,20 @@
 """Saddle-point systems [A Cᵀ; C 0] as one AIJ matrix, their KSP, and what
 to do when the solver fails.
 
-The blocks are wrapped in a MATNEST and converted to AIJ once (MUMPS cannot
-factor a nest); the constraint block carries an explicit zero diagonal so
-that factorisations and fieldsplit find its entries. When A's values change
-(same pattern) ``update`` writes them into their places in K, so K keeps
-its nonzero state and factorisations keep their symbolic phase (MUMPS's
-analysis runs once a run). On one rank K is made on a value array of its
-own, which ``update`` fills by one indexed copy, Cᵀ's values being C's
-permuted; on several K is a COO matrix (``solvers.coo``) whose Cᵀ entries
-are C's sent to the rows they land in (at 40×160 a Newton matrix took 0.32 s
-to form through MatTranspose and setValuesCSR, 0.17 s so; the nest's Cᵀ
-then only gives the fields). Small serial systems (the reduced model's) can be
-held dense instead and factorised by LAPACK's pivoting LU. Each rank's
-rows are [its A rows, its C rows], so a saddle vector's local array is the
-concatenation of the two local parts.
+K is one AIJ matrix on a value array of its own (``aij.OwnAIJ``), laid out
+once from A's and C's patterns with an explicit zero diagonal in the
+constraint block (factorisations and fieldsplit find its entries). When A's
+values change (same pattern) ``update`` writes them into their places in K
+by one indexed copy from where A keeps them, and C's, when they change,
+through an SF that also sends Cᵀ's entries to the ranks whose rows they
+land in. So K keeps its nonzero state and factorisations keep their
+symbolic phase (MUMPS's analysis runs once a run), and no MatSetValues,
+MatConvert or COO assembly runs in a Newton iteration (at 40×80 on two
+ranks the COO matrices took 0.32 s to set up and 20 ms a Newton iteration
+to fill). Small serial systems (the reduced model's) are held dense
+instead, through a MATNEST converted once, and factorised by LAPACK's
+pivoting LU. Each rank's rows are [its A rows, its C rows], so a saddle
+vector's local array is the concatenation of the two local parts.
 
 Regularised Jacobian. Serial MUMPS pairs every zero-diagonal constraint
 row with a coordinate before ordering (maximum weighted matching, ICNTL(6);
@@ -33,15 +33,14 @@ counts and states over three steps of the 10×20 jersey); ``-<prefix>ksp_type gm
 solves K itself, in one or two iterations.
 """
 
-from contextlib import nullcontext
-
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from knitfem.assembly import csr_positions, csr_rows
 
-from .coo import coo_matrix, set_values
-from .libpetsc import Int, library, seqaij_values
+from .aij import OwnAIJ, storage_pattern, storage_values
+from .libpetsc import Int, library
 
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
            "ksp_failure", "failure_or_retry", "pc_failure"]
@@ -58,6 +57,24 @@ def zero_diagonal(comm, n_local, n_global):
     return Z
 
 
+def _in_storage_order(indptr, indices, position, sizes):
+    """(rows, columns) of a ``storage_pattern`` in storage order, and its
+    block sizes."""
+    rows = csr_rows(indptr)
+    if position is None:
+        return rows, indices, sizes
+    r, c = np.empty_like(rows), np.empty_like(indices)
+    r[position], c[position] = rows, indices
+    return r, c, sizes
+
+
+def _copy_off_diagonal(blocks):
+    """Storage blocks for a new ``OwnAIJ``: the diagonal block's arrays
+    shared (PETSc only reads them), the off-diagonal block's copied (PETSc
+    renumbers its columns in place)."""
+    return blocks[:1] + [(ptr, cols.copy()) for ptr, cols in blocks[1:]]
+
+
 class SaddlePoint:
     """K = [A Cᵀ; C 0] for A (n×n) and C (k×n); K = A when C has no rows.
 
@@ -72,99 +89,133 @@ class SaddlePoint:
 
     def __init__(self, A, C, dense=False, prefix=None, blocks=None):
         self.A, self.C, self.aij, self.blocks = A, C, None, blocks
-        self.P, self.delta, self.arrays = None, 0.0, None
+        self.P, self.delta, self.nest = None, 0.0, None
         self.nu = A.getLocalSize()[0]
         self.nl = C.getLocalSize()[0] if C is not None else 0
         self.constrained = C is not None and C.getSize()[0] > 0
         if not self.constrained:
-            self.nl, self.nest, self.K = 0, None, A
+            self.nl, self.K = 0, A
             self.P = A
             return
         comm = A.getComm()
-        self.Ct = C.transpose(PETSc.Mat())
-        self.Z = zero_diagonal(comm, *C.getSizes()[0])
-        self.nest = PETSc.Mat().createNest([[A, self.Ct], [C, self.Z]], comm=comm)
-        self.fields = self.nest.getNestISs()[0]
         # K's rows on rank r: its rows of A, then its rows of C
         self.k_ranges = np.add(A.getOwnershipRanges(), C.getOwnershipRanges())
-        if comm.getSize() > 1:
-            self._coo_values()
-        elif dense:
+        first = self.k_ranges[comm.getRank()]
+        self.fields = [PETSc.IS().createStride(size, first=start, step=1, comm=comm)
+                       for size, start in ((self.nu, first), (self.nl, first + self.nu))]
+        if dense and comm.getSize() == 1:
+            self.Ct = C.transpose(PETSc.Mat())
+            self.Z = zero_diagonal(comm, *C.getSizes()[0])
+            self.nest = PETSc.Mat().createNest([[A, self.Ct], [C, self.Z]], comm=comm)
             self.aij = self.nest.convert("aij", PETSc.Mat())
             self.K = self.aij.convert("dense", PETSc.Mat())
-        else:
-            self._own_values()
-        tau = regularization_option(prefix, comm) if prefix and not dense else 0.0
-        self.P = self.K if tau == 0 else self.regularized(tau)
-        if comm.getSize() > 1:
-            self.update()                         # the COO matrices' first values
+            self.P = self.K
+            return
+        blocks = self._own_values()
+        tau = regularization_option(prefix, comm) if prefix else 0.0
+        self.P = self.K if tau == 0 else self.regularized(tau, blocks)
 
     def _own_values(self):
-        """On one rank K is built on a value array of its own (``arrays``),
-        its CSR laid out from A's and C's without a sort of its entries: row
-        i < nu is A's row i, then Cᵀ's (columns nu + r); row nu + r is C's
-        row r, then its zero diagonal. ``slots`` are the places of A's, Cᵀ's
-        and C's values in it; Cᵀ's values are C's permuted by ``transpose``
-        (C's entries ordered by column, rows ascending)."""
-        nu, nl = self.nu, self.nl
-        ai, aj, _ = self.A.getValuesCSR()
-        ci, cj, _ = self.C.getValuesCSR()
-        self.transpose = np.argsort(cj, kind="stable")
-        ti = np.searchsorted(cj[self.transpose], np.arange(nu + 1))
-        la, lt, lc = np.diff(ai), np.diff(ti), np.diff(ci)
-        indptr = np.zeros(nu + nl + 1, dtype=PETSc.IntType)
-        np.cumsum(np.concatenate([la + lt, lc + 1]), out=indptr[1:])
-        first = indptr.astype(np.int64)
-        a_pos = csr_positions(ai, first[:nu])
-        t_pos = csr_positions(ti, first[:nu] + la)
-        c_pos = csr_positions(ci, first[nu:-1])
-        self.slots = a_pos, t_pos, c_pos
-        self.diagonal = first[nu + 1:] - 1                       # the −δI block
-        indices = np.empty(indptr[-1], dtype=PETSc.IntType)
-        indices[a_pos] = aj
-        indices[t_pos] = nu + csr_rows(ci)[self.transpose]
-        indices[c_pos] = cj
-        indices[self.diagonal] = nu + np.arange(nl)
-        self.arrays = [np.zeros(indptr[-1], dtype=PETSc.ScalarType)]
-        self._write_arrays()
-        self.K = self._on_array(nu + nl, indptr, indices, self.arrays[0])
+        """K on a value array of its own (``aij.OwnAIJ``), laid out from A's
+        and C's storage without a sort of their entries, and the places
+        their values go; returns K's storage blocks.
 
-    @staticmethod
-    def _on_array(n, indptr, indices, values):
-        """An n × n AIJ matrix holding ``values`` itself (one rank)."""
-        K = PETSc.Mat().createAIJWithArrays(n, (indptr, indices, values),
-                                            comm=PETSc.COMM_SELF)
-        K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        return K
-
-    def regularized(self, tau):
-        """P = K − δ [0 0; 0 I] with δ = τ / max diag A (same pattern as K)."""
-        self.delta = tau / self.A.getDiagonal().norm(PETSc.NormType.INFINITY)
-        if self.arrays is not None:
-            indptr, indices, values = self.K.getValuesCSR()
-            values[self.diagonal] = -self.delta
-            self.arrays.append(values)
-            return self._on_array(self.K.getSize()[0], indptr, indices, values)
-        P = coo_matrix(self.K.getComm(), self.K.getSizes(), *self.coo)
-        self.coo_targets.append((P, np.full(self.nl, -self.delta)))
-        return P
-
-    def _coo_values(self):
-        """On several ranks K is a COO matrix (``solvers.coo``) of A's
-        entries, Cᵀ's (C's sent to the rows they land in), C's and the
-        multipliers' diagonal, written from A's and C's values as they are."""
+        A row of A's part holds A's row, then Cᵀ's (columns of the
+        multipliers); a row of C's part C's row, then its diagonal. K's
+        diagonal block is these runs as they come (A's and C's diagonal
+        blocks, Cᵀ's entries of this rank's multipliers); the few entries
+        of its off-diagonal block (couplings with other ranks' courses) are
+        sorted. Cᵀ's entries come from C's through a transposed matrix of
+        C's entry numbers; an SF (``self.sf``) sends C's values to their
+        places in K, on whatever rank they land."""
+        comm, rank = self.A.getComm(), self.A.getComm().getRank()
+        nu, nl, k = self.nu, self.nl, self.k_ranges
+        n, a0, c0 = nu + nl, self.A.getOwnershipRange()[0], self.C.getOwnershipRange()[0]
+        a_rows, a_cols, self.a_sizes = _in_storage_order(*storage_pattern(self.A))
+        ci, cj, c_position, self.c_sizes = storage_pattern(self.C)
+        c_rows, c_cols, _ = _in_storage_order(ci, cj, c_position, self.c_sizes)
+        t_rows, t_cols, t_owner, t_index = self._transposed_entries(ci, cj, c_position)
+        t_in = t_owner == rank
+        lam = np.arange(nl)
+        na, nc = self.a_sizes[0], self.c_sizes[0]
+        # (rows, local columns) of the diagonal block's runs, in row order
+        runs = [(a_rows[:na], a_cols[:na] - a0),
+                (t_rows[t_in], nu + t_cols[t_in] - c0),
+                (nu + c_rows[:nc], c_cols[:nc] - a0),
+                (nu + lam, nu + lam)]
+        counts = [np.bincount(rows, minlength=n) for rows, _ in runs]
+        dptr = np.zeros(n + 1, dtype=PETSc.IntType)
+        np.cumsum(sum(counts), out=dptr[1:])
+        dcols = np.empty(dptr[-1], dtype=PETSc.IntType)
+        first, inside = dptr[:-1].astype(np.int64), []
+        for (rows, cols), count in zip(runs, counts):
+            pos = csr_positions(np.concatenate([[0], np.cumsum(count)]), first)
+            dcols[pos] = cols
+            inside.append(pos)
+            first += count
+        # the off-diagonal block's, in K's global columns, sorted
         a, c = (np.asarray(M.getOwnershipRanges()) for M in (self.A, self.C))
-        k, rank = self.k_ranges, self.A.getComm().getRank()
-        ai, aj, _ = self.A.getValuesCSR()
-        ci, cj, _ = self.C.getValuesCSR()
-        a_rows = k[rank] + csr_rows(ai)
-        c_rows = k[rank] + self.nu + csr_rows(ci)
-        a_cols, c_cols = self._to_k(aj, a, 0 * a), self._to_k(cj, a, 0 * a)
-        lam = k[rank] + self.nu + np.arange(self.nl)
-        self.coo = (np.concatenate([a_rows, c_cols, c_rows, lam]),
-                    np.concatenate([a_cols, c_rows, c_cols, lam]))
-        self.K = coo_matrix(self.A.getComm(), self.nest.getSizes(), *self.coo)
-        self.coo_targets = [(self.K, np.zeros(self.nl))]     # (matrix, its λ diagonal)
+        orows = np.concatenate([a_rows[na:], t_rows[~t_in], nu + c_rows[nc:]])
+        ocols = np.concatenate([self._to_k(a_cols[na:], a, 0 * a),
+                                self._to_k(t_cols[~t_in], c, np.diff(a)),
+                                self._to_k(c_cols[nc:], a, 0 * a)])
+        order = np.lexsort((ocols, orows))
+        outside = np.empty(len(order), dtype=np.int64)
+        outside[order] = dptr[-1] + np.arange(len(order))
+        optr = np.zeros(n + 1, dtype=PETSc.IntType)
+        np.cumsum(np.bincount(orows, minlength=n), out=optr[1:])
+        blocks = [(dptr, dcols)] + ([(optr, ocols[order])] if comm.getSize() > 1 else [])
+        # where A's, Cᵀ's and C's values go, in their storage order
+        no_a, no_t = len(a_rows) - na, np.count_nonzero(~t_in)
+        a_pos = np.concatenate([inside[0], outside[:no_a]])
+        t_pos = np.empty(len(t_rows), dtype=np.int64)
+        t_pos[t_in], t_pos[~t_in] = inside[1], outside[no_a:no_a + no_t]
+        c_pos = np.concatenate([inside[2], outside[no_a + no_t:]])
+        self.diagonal = inside[3]
+        self.a_pos = np.split(a_pos, np.cumsum(self.a_sizes)[:-1])
+        self.own = [OwnAIJ(comm, ((n, k[-1]), (n, k[-1])), _copy_off_diagonal(blocks))]
+        self.K = self.own[0].mat
+        # C's values (roots: this rank's, in storage order) to C's and Cᵀ's places
+        self.sf = PETSc.SF().create(comm=comm)
+        remote = np.empty((len(c_pos) + len(t_pos), 2), dtype=PETSc.IntType)
+        remote[:len(c_pos), 0] = rank
+        remote[:len(c_pos), 1] = np.arange(len(c_pos))
+        remote[len(c_pos):, 0], remote[len(c_pos):, 1] = t_owner, t_index
+        self.sf.setGraph(len(c_pos), np.concatenate([c_pos, t_pos]).astype(PETSc.IntType),
+                         remote.ravel())
+        self.sf.setUp()
+        self._write_values(constraints=True)
+        return blocks
+
+    def _transposed_entries(self, indptr, indices, position):
+        """Cᵀ's entries in this rank's rows (local row, global column of C's
+        row) in CSR order, and where their values are in C's storage (the
+        owning rank, the position there): the transpose of C with the
+        numbers of its entries for values. C's rows are (indptr, indices)
+        here, their entries at ``position`` in its storage."""
+        comm = self.C.getComm()
+        nnz = len(indices)
+        offsets = np.concatenate([[0], np.cumsum(comm.tompi4py().allgather(nnz))])
+        ids = np.arange(nnz) if position is None else position
+        numbers = PETSc.Mat().createAIJ(self.C.getSizes(), csr=(
+            indptr, indices, (offsets[comm.getRank()] + ids).astype(np.float64)),
+            comm=comm)
+        transposed = numbers.transpose(PETSc.Mat())
+        ti, tj, tv = transposed.getValuesCSR()
+        for M in (numbers, transposed):
+            M.destroy()
+        ids = tv.astype(np.int64)
+        owner = np.searchsorted(offsets, ids, side="right") - 1
+        return csr_rows(ti), tj, owner, ids - offsets[owner]
+
+    def regularized(self, tau, blocks):
+        """P = K − δ [0 0; 0 I] with δ = τ / max diag A, on K's storage
+        ``blocks``."""
+        self.delta = tau / self.A.getDiagonal().norm(PETSc.NormType.INFINITY)
+        self.own.append(OwnAIJ(self.A.getComm(), self.K.getSizes(),
+                               _copy_off_diagonal(blocks)))
+        self._write_values(constraints=False)
+        return self.own[1].mat
 
     def _to_k(self, cols, ranges, shift):
         """K's global index of global index ``cols`` of a block whose
@@ -176,29 +227,32 @@ class SaddlePoint:
     def update(self, constraints=False):
         """Refresh K after A's values changed, and C's with ``constraints``
         (same nonzero patterns)."""
-        if self.arrays is not None:
-            self._write_arrays()
-            for K in (self.K, self.P) if self.P is not self.K else (self.K,):
-                K.assemble()                 # a new state: factorisations redo
-            return
         if self.aij is not None:
             if constraints:
                 self.C.transpose(self.Ct)
             self._dense_update(constraints)
         elif self.constrained:
-            a, c = self.A.getValuesCSR()[2], self.C.getValuesCSR()[2]
-            for K, diagonal in self.coo_targets:
-                set_values(K, np.concatenate([a, c, c, diagonal]))
+            self._write_values(constraints)
 
-    def _write_arrays(self):
-        """A's and C's values into their places in K's value arrays (read
-        where A and C keep them when they are sequential AIJ)."""
-        a, t, c = self.slots
-        with aij_values(self.A, len(a)) as va, aij_values(self.C, len(c)) as vc:
-            for array in self.arrays:
-                array[a] = va
-                array[t] = vc[self.transpose]
-                array[c] = vc
+    def _write_values(self, constraints):
+        """A's values, and C's with ``constraints``, into their places in K's
+        value array (read where A and C keep them); P's is K's with −δ on
+        the multipliers' diagonal. K and P are assembled: a new state, so
+        factorisations redo."""
+        K = self.own[0].values
+        with storage_values(self.A, self.a_sizes) as parts:
+            for values, pos in zip(parts, self.a_pos):
+                K[pos] = values
+        if constraints:
+            with storage_values(self.C, self.c_sizes) as parts:
+                roots = np.concatenate(parts)
+            self.sf.bcastBegin(MPI.DOUBLE, roots, K, MPI.REPLACE)
+            self.sf.bcastEnd(MPI.DOUBLE, roots, K, MPI.REPLACE)
+        for own in self.own[1:]:
+            own.values[:] = K
+            own.values[self.diagonal] = -self.delta
+        for own in self.own:
+            own.assemble()
 
     def _dense_update(self, constraints):
         """A dense K written in place: A's block from A's values when A's
@@ -241,17 +295,13 @@ class SaddlePoint:
     def destroy(self):
         if self.constrained:
             P = self.P if self.P is not self.K else None
-            for obj in (self.Ct, self.Z, self.nest, self.K, self.aij, P):
+            for obj in (self.nest, self.K, self.aij, P, getattr(self, "sf", None),
+                        *self.fields):
                 if obj is not None:
                     obj.destroy()
-
-
-def aij_values(A, nnz):
-    """A context giving the ``nnz`` values of AIJ matrix A in CSR order: a
-    view of its own storage when it is sequential, else a copy."""
-    if A.getType() == PETSc.Mat.Type.SEQAIJ:
-        return seqaij_values(A, nnz)
-    return nullcontext(A.getValuesCSR()[2])
+            if self.nest is not None:
+                self.Ct.destroy()
+                self.Z.destroy()
 
 
 def regularization_option(prefix, comm):

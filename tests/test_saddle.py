@@ -8,7 +8,6 @@ from petsc4py import PETSc
 from helpers import to_scipy
 from knitfem.model import FullModel, Material
 from knitfem.pattern import Jersey, jersey_fabric
-from solvers.coo import coo_matrix, set_values
 from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, saddle_ksp,
                             solve_saddle)
 
@@ -225,21 +224,3 @@ def test_course_schwarz_solves_K(model, options, courses, overlap):
     assert z2.norm() <= 1e-6 * z1.norm()
     for s in (direct, schwarz):
         s.destroy()
-
-
-def test_coo_entries_sum_repeats_and_reach_other_ranks():
-    """A COO matrix: every rank gives one entry twice in its own row and one
-    in the next rank's row; repeats are summed, the other rank's row gets
-    it, and new values replace the old ones."""
-    r, size, n = COMM.rank, COMM.size, 2
-    rows = [n * r, n * r, n * ((r + 1) % size) + 1]
-    cols = [n * r, n * r, 0]
-    A = coo_matrix(COMM, ((n, None), (n, None)), rows, cols)
-    for scale in (1.0, 3.0):
-        set_values(A, scale * np.array([1.0, 2.0, 5.0 + r]))
-        dense = to_scipy(A).toarray()
-        sender = (r - 1) % size
-        assert dense[0, n * r] == 3.0 * scale
-        assert dense[1, 0] == (5.0 + sender) * scale
-        assert np.count_nonzero(dense) == 2
-    A.destroy()
