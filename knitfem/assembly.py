@@ -49,8 +49,8 @@ class YarnLayout:
 
 
 def csr_rows(indptr):
-    """Row index of every CSR entry."""
-    return np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+    """Row index of every CSR entry (PETSc's integer type)."""
+    return np.repeat(np.arange(len(indptr) - 1, dtype=PETSc.IntType), np.diff(indptr))
 
 
 def csr_positions(indptr, first):

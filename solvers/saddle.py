@@ -139,7 +139,7 @@ class SaddlePoint:
         lam = np.arange(nl)
         na, nc = self.a_sizes[0], self.c_sizes[0]
         # (rows, local columns) of the diagonal block's runs, in row order
-        runs = [(a_rows[:na], a_cols[:na] - a0),
+        runs = [(a_rows[:na], a_cols[:na] - a0 if a0 else a_cols[:na]),
                 (t_rows[t_in], nu + t_cols[t_in] - c0),
                 (nu + c_rows[:nc], c_cols[:nc] - a0),
                 (nu + lam, nu + lam)]
@@ -167,7 +167,7 @@ class SaddlePoint:
         blocks = [(dptr, dcols)] + ([(optr, ocols[order])] if comm.getSize() > 1 else [])
         # where A's, Cᵀ's and C's values go, in their storage order
         no_a, no_t = len(a_rows) - na, np.count_nonzero(~t_in)
-        a_pos = np.concatenate([inside[0], outside[:no_a]])
+        a_pos = np.concatenate([inside[0], outside[:no_a]]) if no_a else inside[0]
         t_pos = np.empty(len(t_rows), dtype=np.int64)
         t_pos[t_in], t_pos[~t_in] = inside[1], outside[no_a:no_a + no_t]
         c_pos = np.concatenate([inside[2], outside[no_a + no_t:]])
