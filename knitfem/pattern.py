@@ -33,7 +33,6 @@ and whole yarns still spread over the ranks.
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import bspline
 
@@ -186,6 +185,8 @@ def min_yarn_distance(yarns, samples_per_segment=8):
     ``samples_per_segment`` times a segment, and the samples of every later
     yarn are matched to a k-d tree of yarn f. Returns (distance, f, g).
     """
+    from scipy.spatial import cKDTree          # on first use: 40 ms of import
+
     pts = []
     for P in yarns:
         s = np.linspace(0, len(P) - 3, (len(P) - 3) * samples_per_segment + 1)

@@ -27,7 +27,6 @@ are taken where the turned start puts them).
 """
 
 import numpy as np
-from scipy.optimize import brentq
 
 from . import bspline
 from .colliders import Sphere
@@ -64,6 +63,8 @@ def arc_yarn(length, span, nseg):
     if not span < length:
         raise ValueError(f"catenary span {span} must be shorter than the yarn "
                          f"length {length}")
+    from scipy.optimize import brentq          # on first use: 20 ms of import
+
     # chord = 2R sin(θ/2), L = Rθ
     half = brentq(lambda a: np.sin(a) / a - span / length, 1e-9, np.pi - 1e-12)
     R = length / (2 * half)
