@@ -104,12 +104,14 @@ class ElementPattern:
         return np.bincount(self.slot.ravel(), weights=elements.ravel(),
                            minlength=len(self.indices))
 
-    def blocks3(self):
+    def blocks3(self, diagonal=()):
         """Pattern of the interleaved 3-D matrix with full 3×3 blocks.
 
         Returns (indptr3, indices3, slot3s) with slot3s[i] (ne, 3k, 3k) the
         value position of entry (3a + p, 3b + q) of an element of set i (−1
-        where the row is not local).
+        where the row is not local); for the sets i in ``diagonal``, whose
+        entries are blocks h ⊗ I₃ (the contacts' curvature), slot3s[i] is
+        (ne, 3, k, k): the position of entry (3a + d, 3b + d) at [e, d, a, b].
         """
         length = np.diff(self.indptr)
         k = np.arange(len(self.indices)) - np.repeat(self.indptr[:-1], length)
@@ -125,8 +127,12 @@ class ElementPattern:
         indices3[base.ravel()] = np.broadcast_to(
             3 * self.indices[:, None, None] + comp[None, None, :], base.shape).ravel()
         slot3s = []
-        for slot in self.slots:
+        for i, slot in enumerate(self.slots):
             ne, n = slot.shape[:2]
+            if i in diagonal:
+                s3 = np.where(slot[..., None] >= 0, base[:, comp, comp][slot], -1)
+                slot3s.append(np.ascontiguousarray(s3.transpose(0, 3, 1, 2)))
+                continue
             s3 = np.where(slot[..., None, None] >= 0, base[slot], -1)  # (ne,n,n,3,3)
             slot3s.append(s3.transpose(0, 1, 3, 2, 4).reshape(ne, 3 * n, 3 * n))
         return indptr3, indices3, slot3s

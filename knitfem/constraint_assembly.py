@@ -148,17 +148,15 @@ class ConstraintAssembly:
         elements to add to the tangent's pattern."""
         return self.reaching.cols
 
-    def curvature_operator(self, slot3, nnz):
+    def curvature_operator(self, slots, nnz):
         """B (nnz × 3·len(touching)) with Σ_i μ_i ∇²g_i = B μ in the tangent's
-        CSR values; ``slot3`` (len(touching), 24, 24) the value slots of the
-        contact elements (−1 off this rank's rows). ∇²g = h ⊗ I₃, so entry
-        (3k + d, 3l + d) of contact c gets Σ_j μ_cj h_cjkl."""
+        values; ``slots`` (len(touching), 3, 8, 8) the value slots of entry
+        (3k + d, 3l + d) of each contact element at [c, d, k, l] (−1 off
+        this rank's rows; ``ElementPattern.blocks3`` with ``diagonal``).
+        ∇²g = h ⊗ I₃, so that entry of contact c gets Σ_j μ_cj h_cjkl."""
         h = self.reaching.hessians()           # (n, 3, 8, 8)
         n = len(self.touching)
-        d = np.arange(3)
-        slots = slot3.reshape(n, 8, 3, 8, 3)[:, :, d, :, d]          # (3, n, 8, 8)
-        slots = np.broadcast_to(slots.transpose(1, 0, 2, 3)[:, None],
-                                (n, 3, 3, 8, 8))                    # c, j, d, k, l
+        slots = np.broadcast_to(slots[:, None], (n, 3, 3, 8, 8))   # c, j, d, k, l
         keep = slots >= 0
         # column 3c + j of B holds (d, k, l): in this order, B by columns
         indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, 192).sum(axis=1))])

@@ -377,11 +377,11 @@ class MixedModel(EmbeddedModel):
         kept = self.keep_contact[asm.touching]
         pattern = ElementPattern([full.conn[touching], reach[kept]], lay.cp_start,
                                  lay.ncp_local)
-        indptr3, indices3, (slot_t, slot_c) = pattern.blocks3()
+        indptr3, indices3, (slot_t, slot_c) = pattern.blocks3(diagonal=(1,))
         self.t_csr = (indptr3.astype(PETSc.IntType), indices3.astype(PETSc.IntType))
         self.t_slot = np.ascontiguousarray(slot_t, dtype=np.int64)
         self.t_values = np.zeros(len(indices3), dtype=PETSc.ScalarType)
-        slots = np.full((len(reach), 24, 24), -1, dtype=np.int64)
+        slots = np.full((len(reach), 3, 8, 8), -1, dtype=np.int64)
         slots[kept] = slot_c
         self.t_curvature = asm.curvature_operator(slots, len(indices3))
         self.Kt = self.Kp = None

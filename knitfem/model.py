@@ -255,7 +255,8 @@ class FullModel:
         with EV_ASSEMBLY:
             tangent = ElementPattern([self.conn, cons_asm.element_cols()],
                                      lay.cp_start, lay.ncp_local)
-            indptr3, indices3, (slot3_yarn, slot3_contacts) = tangent.blocks3()
+            indptr3, indices3, (slot3_yarn, slot3_contacts) = \
+                tangent.blocks3(diagonal=(1,))
             n, N = 3 * lay.ncp_local, 3 * lay.ncp
             K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
             self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn), dtype=np.int64)

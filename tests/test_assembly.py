@@ -57,3 +57,29 @@ def test_mass_symmetric_positive_definite_and_banded(jersey_model):
     M = to_scipy(model.M).toarray()
     assert np.array_equal(M, np.kron(m, np.eye(3)))
     assert model.M.getBlockSize() == 3
+
+
+def test_diagonal_block_slots_are_the_full_slots_diagonal_components():
+    """``blocks3(diagonal=...)`` gives, for those element sets, the slots of
+    entries (3a + d, 3b + d) that the full 3×3 slots give, −1 kept where a
+    row is not local."""
+    from knitfem.assembly import ElementPattern
+
+    rng = np.random.default_rng(3)
+    conns = [np.sort(rng.choice(20, (6, 4)), axis=1), rng.choice(20, (5, 8))]
+    pattern = ElementPattern(conns, 5, 10)               # rows 5..14 local
+    _, _, (yarn, contacts) = pattern.blocks3()
+    ptr, ind, (yarn_d, contacts_d) = pattern.blocks3(diagonal=(1,))
+    assert np.array_equal(yarn_d, yarn) and contacts_d.shape == (5, 3, 8, 8)
+    d = np.arange(3)
+    full = contacts.reshape(5, 8, 3, 8, 3)[:, :, d, :, d].transpose(1, 0, 2, 3)
+    assert np.array_equal(contacts_d, full)
+    assert (contacts_d == -1).any() and (contacts_d >= 0).any()
+    rows = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
+    kept = contacts_d >= 0
+    # a kept slot of (3a + d, 3b + d) sits in row 3·(conn[a] − 5) + d, column 3·conn[b] + d
+    c = conns[1]
+    row = 3 * (c[:, None, :, None] - 5) + d[None, :, None, None]
+    col = 3 * c[:, None, None, :] + d[None, :, None, None]
+    assert np.array_equal(rows[contacts_d[kept]], np.broadcast_to(row, kept.shape)[kept])
+    assert np.array_equal(ind[contacts_d[kept]], np.broadcast_to(col, kept.shape)[kept])
