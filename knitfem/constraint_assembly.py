@@ -17,8 +17,9 @@ lands in the rows of both its yarns and reads its multipliers μ, which live
 on the rank of course k. Two PETSc scatters, set up once, bring both.
 
 The curvature is linear in μ with constant coefficients (g is quadratic),
-so its values in the tangent's CSR are B μ for a constant sparse B built
-once from the slots of the tangent's pattern (``curvature_operator``).
+so its values in the tangent are S (Σ_j μ_cj h_cj) for the constant
+Hessians h and a constant 0/1 scatter S built once from the slots of the
+tangent's pattern (``Curvature``).
 """
 
 import numpy as np
@@ -27,13 +28,39 @@ from petsc4py import PETSc
 
 from solvers.aij import OwnAIJ
 
-__all__ = ["ConstraintAssembly"]
+__all__ = ["ConstraintAssembly", "Curvature"]
 
 
 def _block_is(comm, points):
     """IS of the interleaved coordinates of ``points`` (block size 3)."""
     return PETSc.IS().createBlock(3, np.asarray(points, dtype=PETSc.IntType),
                                   comm=PETSc.COMM_SELF)
+
+
+class Curvature:
+    """Σ_i μ_i ∇²g_i of n contacts added into a tangent's values.
+
+    ∇²g_cj = h_cj ⊗ I₃ with h (n, 3, 8, 8) constant, so entry (3k + d,
+    3l + d) of contact c gets m_ckl = Σ_j μ_cj h_cjkl for d = 0, 1, 2: the
+    sums m (n·64, one small contraction) go to their three slots through a
+    constant 0/1 matrix S (nnz × 64 n, built column by column: no sort),
+    three entries a column where the rows are local."""
+
+    def __init__(self, h, slots, nnz):
+        n = len(h)
+        self.h = np.ascontiguousarray(h.reshape(n, 3, 64))
+        order = np.ascontiguousarray(slots.transpose(0, 2, 3, 1)).reshape(64 * n, 3)
+        keep = order >= 0                                  # column 64c + 8k + l, d
+        indptr = np.zeros(64 * n + 1, dtype=np.int64)
+        np.cumsum(keep.sum(axis=1), out=indptr[1:])
+        self.S = sp.csc_matrix((np.ones(indptr[-1]), order[keep], indptr),
+                               shape=(nnz, 64 * n))
+
+    def add(self, mu, weight, values):
+        """values += weight · Σ_i μ_i ∇²g_i for the multipliers ``mu`` (3 n,
+        a contact's three rows together)."""
+        m = np.einsum("cj,cjx->cx", np.reshape(mu, (-1, 3)), self.h)
+        values += self.S @ (weight * m.ravel())
 
 
 class ConstraintAssembly:
@@ -149,24 +176,18 @@ class ConstraintAssembly:
         return self.reaching.cols
 
     def curvature_operator(self, slots, nnz):
-        """B (nnz × 3·len(touching)) with Σ_i μ_i ∇²g_i = B μ in the tangent's
-        values; ``slots`` (len(touching), 3, 8, 8) the value slots of entry
-        (3k + d, 3l + d) of each contact element at [c, d, k, l] (−1 off
-        this rank's rows; ``ElementPattern.blocks3`` with ``diagonal``).
-        ∇²g = h ⊗ I₃, so that entry of contact c gets Σ_j μ_cj h_cjkl."""
-        h = self.reaching.hessians()           # (n, 3, 8, 8)
-        n = len(self.touching)
-        slots = np.broadcast_to(slots[:, None], (n, 3, 3, 8, 8))   # c, j, d, k, l
-        keep = slots >= 0
-        # column 3c + j of B holds (d, k, l): in this order, B by columns
-        indptr = np.concatenate([[0], np.cumsum(keep.reshape(3 * n, 192).sum(axis=1))])
-        vals = np.broadcast_to(h[:, :, None], slots.shape)
-        return sp.csc_matrix((vals[keep], slots[keep], indptr), shape=(nnz, 3 * n))
+        """The curvature Σ_i μ_i ∇²g_i of the contacts that reach this rank's
+        rows, into a tangent's ``nnz`` values (``Curvature``); ``slots``
+        (len(touching), 3, 8, 8) the value slots of entry (3k + d, 3l + d)
+        of each contact element at [c, d, k, l] (−1 off this rank's rows;
+        ``ElementPattern.blocks3`` with ``diagonal``)."""
+        return Curvature(self.reaching.hessians(), slots, nnz)
 
     def add_curvature(self, mu, weight, values):
-        """values += weight · B μ (the tangent's CSR values). Collective."""
+        """values += weight · Σ_i μ_i ∇²g_i (the owning model's tangent
+        values, through ``self.B``, its ``Curvature``). Collective."""
         self.gather_mu.scatter(mu, self.mu)
-        values += weight * (self.B @ self.mu.getArray(readonly=True))
+        self.B.add(self.mu.getArray(readonly=True), weight, values)
 
     def destroy(self):
         for obj in (self.C, self.points, self.gather_points, self.mu, self.gather_mu):

@@ -496,8 +496,8 @@ class MixedModel(EmbeddedModel):
             if mu is not None and weight:
                 asm = self.full.constraints
                 asm.gather_mu.scatter(mu, asm.mu)
-                self.t_values += weight * (self.t_curvature
-                                           @ asm.mu.getArray(readonly=True))
+                self.t_curvature.add(asm.mu.getArray(readonly=True), weight,
+                                     self.t_values)
         with EV_PTAP:
             if self.Kt is None:
                 n, N = 3 * self.layout.ncp_local, 3 * self.layout.ncp

@@ -83,3 +83,24 @@ def test_diagonal_block_slots_are_the_full_slots_diagonal_components():
     col = 3 * c[:, None, None, :] + d[None, :, None, None]
     assert np.array_equal(rows[contacts_d[kept]], np.broadcast_to(row, kept.shape)[kept])
     assert np.array_equal(ind[contacts_d[kept]], np.broadcast_to(col, kept.shape)[kept])
+
+
+def test_curvature_adds_each_contacts_hessian_sum_at_its_diagonal_slots():
+    """``Curvature.add``: entry (3k + d, 3l + d) of contact c gets
+    w Σ_j μ_cj h_cjkl at its slot, summed where contacts share a slot and
+    left out where the slot is −1."""
+    from knitfem.constraint_assembly import Curvature
+
+    rng = np.random.default_rng(5)
+    n, nnz = 4, 300
+    h = rng.standard_normal((n, 3, 8, 8))
+    slots = rng.integers(0, nnz, (n, 3, 8, 8))
+    slots[rng.random(slots.shape) < 0.2] = -1
+    mu, w = rng.standard_normal(3 * n), 0.7
+    values = rng.standard_normal(nnz)
+    expect = values.copy()
+    m = np.einsum("cj,cjkl->ckl", mu.reshape(n, 3), h)
+    keep = slots >= 0
+    np.add.at(expect, slots[keep], w * np.broadcast_to(m[:, None], slots.shape)[keep])
+    Curvature(h, slots, nnz).add(mu, w, values)
+    assert np.allclose(values, expect, rtol=0, atol=1e-13)
