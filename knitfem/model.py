@@ -259,7 +259,8 @@ class FullModel:
                 tangent.blocks3(diagonal=(1,))
             n, N = 3 * lay.ncp_local, 3 * lay.ncp
             K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
-            self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn), dtype=np.int64)
+            self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn),
+                                                      dtype=np.int64)
             self.tangent_values = K.values
             cons_asm.B = cons_asm.curvature_operator(K.place(slot3_contacts),
                                                      len(indices3))

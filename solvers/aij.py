@@ -54,8 +54,8 @@ class OwnAIJ:
     """
 
     def __init__(self, comm, sizes, blocks, bsize=None):
-        blocks = [(np.asarray(ptr, dtype=PETSc.IntType), np.asarray(cols, dtype=PETSc.IntType))
-                  for ptr, cols in blocks]
+        blocks = [tuple(np.asarray(a, dtype=PETSc.IntType) for a in block)
+                  for block in blocks]
         ends = np.cumsum([0] + [len(cols) for _, cols in blocks])
         self.values = np.zeros(ends[-1], dtype=PETSc.ScalarType)
         csr = [(ptr, cols, self.values[lo:hi])

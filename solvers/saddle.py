@@ -102,7 +102,8 @@ class SaddlePoint:
         self.k_ranges = np.add(A.getOwnershipRanges(), C.getOwnershipRanges())
         first = self.k_ranges[comm.getRank()]
         self.fields = [PETSc.IS().createStride(size, first=start, step=1, comm=comm)
-                       for size, start in ((self.nu, first), (self.nl, first + self.nu))]
+                       for size, start in ((self.nu, first),
+                                           (self.nl, first + self.nu))]
         if dense and comm.getSize() == 1:
             self.Ct = C.transpose(PETSc.Mat())
             self.Z = zero_diagonal(comm, *C.getSizes()[0])
@@ -130,7 +131,8 @@ class SaddlePoint:
         places in K, on whatever rank they land."""
         comm, rank = self.A.getComm(), self.A.getComm().getRank()
         nu, nl, k = self.nu, self.nl, self.k_ranges
-        n, a0, c0 = nu + nl, self.A.getOwnershipRange()[0], self.C.getOwnershipRange()[0]
+        n = nu + nl
+        a0, c0 = self.A.getOwnershipRange()[0], self.C.getOwnershipRange()[0]
         a_rows, a_cols, self.a_sizes = _in_storage_order(*storage_pattern(self.A))
         ci, cj, c_position, self.c_sizes = storage_pattern(self.C)
         c_rows, c_cols, _ = _in_storage_order(ci, cj, c_position, self.c_sizes)
@@ -164,7 +166,9 @@ class SaddlePoint:
         outside[order] = dptr[-1] + np.arange(len(order))
         optr = np.zeros(n + 1, dtype=PETSc.IntType)
         np.cumsum(np.bincount(orows, minlength=n), out=optr[1:])
-        blocks = [(dptr, dcols)] + ([(optr, ocols[order])] if comm.getSize() > 1 else [])
+        blocks = [(dptr, dcols)]
+        if comm.getSize() > 1:
+            blocks.append((optr, ocols[order]))
         # where A's, Cᵀ's and C's values go, in their storage order
         no_a, no_t = len(a_rows) - na, np.count_nonzero(~t_in)
         a_pos = np.concatenate([inside[0], outside[:no_a]]) if no_a else inside[0]
@@ -181,8 +185,8 @@ class SaddlePoint:
         remote[:len(c_pos), 0] = rank
         remote[:len(c_pos), 1] = np.arange(len(c_pos))
         remote[len(c_pos):, 0], remote[len(c_pos):, 1] = t_owner, t_index
-        self.sf.setGraph(len(c_pos), np.concatenate([c_pos, t_pos]).astype(PETSc.IntType),
-                         remote.ravel())
+        leaves = np.concatenate([c_pos, t_pos]).astype(PETSc.IntType)
+        self.sf.setGraph(len(c_pos), leaves, remote.ravel())
         self.sf.setUp()
         self._write_values(constraints=True)
         return blocks

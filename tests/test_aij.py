@@ -53,7 +53,8 @@ def test_storage_order_of_a_petsc_matrix():
     if position is not None:                 # the diagonal block comes first
         start, end = A.getOwnershipRangeColumn()
         inside = (indices >= start) & (indices < end)
-        assert np.all(position[inside] < sizes[0]) and np.all(position[~inside] >= sizes[0])
+        assert np.all(position[inside] < sizes[0])
+        assert np.all(position[~inside] >= sizes[0])
         rows = csr_rows(indptr)
         for block in (inside, ~inside):      # in CSR order within each block
             assert np.all(np.diff(position[block]) > 0)

@@ -77,12 +77,13 @@ def test_diagonal_block_slots_are_the_full_slots_diagonal_components():
     assert (contacts_d == -1).any() and (contacts_d >= 0).any()
     rows = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
     kept = contacts_d >= 0
-    # a kept slot of (3a + d, 3b + d) sits in row 3·(conn[a] − 5) + d, column 3·conn[b] + d
+    # a kept slot of (3a + d, 3b + d): row 3·(conn[a] − 5) + d, column 3·conn[b] + d
     c = conns[1]
     row = 3 * (c[:, None, :, None] - 5) + d[None, :, None, None]
     col = 3 * c[:, None, None, :] + d[None, :, None, None]
-    assert np.array_equal(rows[contacts_d[kept]], np.broadcast_to(row, kept.shape)[kept])
-    assert np.array_equal(ind[contacts_d[kept]], np.broadcast_to(col, kept.shape)[kept])
+    at = contacts_d[kept]
+    assert np.array_equal(rows[at], np.broadcast_to(row, kept.shape)[kept])
+    assert np.array_equal(ind[at], np.broadcast_to(col, kept.shape)[kept])
 
 
 def test_curvature_adds_each_contacts_hessian_sum_at_its_diagonal_slots():
