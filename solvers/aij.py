@@ -23,6 +23,8 @@ from contextlib import ExitStack, contextmanager
 import numpy as np
 from petsc4py import PETSc
 
+from knitfem.assembly import csr_rows
+
 from .libpetsc import check, library, seqaij_values
 
 __all__ = ["OwnAIJ", "storage_positions", "storage_pattern", "storage_values"]
@@ -77,7 +79,7 @@ class OwnAIJ:
         n = sizes[1][0]
         start = comm.tompi4py().exscan(n) or 0
         position, nd = storage_positions(indptr, indices, start, start + n)
-        rows = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+        rows = csr_rows(indptr)
         diagonal = position < nd
         blocks = []
         for part, cols in ((diagonal, indices[diagonal] - start),

@@ -89,7 +89,7 @@ class SaddlePoint:
 
     def __init__(self, A, C, dense=False, prefix=None, blocks=None):
         self.A, self.C, self.aij, self.blocks = A, C, None, blocks
-        self.P, self.delta, self.nest = None, 0.0, None
+        self.P, self.delta, self.nest, self.sf = None, 0.0, None, None
         self.nu = A.getLocalSize()[0]
         self.nl = C.getLocalSize()[0] if C is not None else 0
         self.constrained = C is not None and C.getSize()[0] > 0
@@ -273,7 +273,7 @@ class SaddlePoint:
         if constraints:
             C = np.zeros((self.nl, nu))
             indptr, indices, values = self.C.getValuesCSR()
-            C[np.repeat(np.arange(self.nl), np.diff(indptr)), indices] = values
+            C[csr_rows(indptr), indices] = values
             Kd[nu:, :nu], Kd[:nu, nu:] = C, C.T
         self.K.assemble()                    # a new state: LU refactorises
 
@@ -299,7 +299,7 @@ class SaddlePoint:
     def destroy(self):
         if self.constrained:
             P = self.P if self.P is not self.K else None
-            for obj in (self.nest, self.K, self.aij, P, getattr(self, "sf", None),
+            for obj in (self.nest, self.K, self.aij, P, self.sf,
                         *self.fields):
                 if obj is not None:
                     obj.destroy()
