@@ -35,7 +35,7 @@ apt:
 # The venv sees Debian's numpy/petsc4py; a .pth file points at Debian's
 # real-scalar petsc4py when /usr/lib/petsc (from the -dev package) is absent.
 # pip install -e . also compiles the yarn kernels (Cython) in place.
-$(VENV)/.installed: setup.py knitfem/_compiled.pyx
+$(VENV)/.installed: setup.py knitfem/yarn/_compiled.pyx
 	test -x $(VPY) || $(PYTHON) -m venv --system-site-packages $(VENV)
 	site=$$($(VPY) -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"); \
 	petsc=$$(ls -d /usr/lib/petscdir/petsc3.*/x86_64-linux-gnu-real/lib/python3/dist-packages | tail -n 1); \
@@ -59,4 +59,4 @@ test-parallel:
 	timeout 300 $(MPIRUN) $(PYTEST) tests/test_saddle.py
 
 clean:
-	rm -rf $(VENV) out *.egg-info build knitfem/_compiled.c knitfem/*.so
+	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so

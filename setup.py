@@ -4,7 +4,7 @@ Dependencies come from Debian (petsc4py, mpi4py, numpy, scipy, h5py, meshio,
 matplotlib); they are not listed in install_requires so that pip never
 replaces Debian's numpy, which petsc4py is built against.
 
-The compiled yarn kernels (``knitfem/_compiled.pyx``) are built here by
+The compiled yarn kernels (``knitfem/yarn/_compiled.pyx``) are built here by
 Debian's Cython (``cython3``) and gcc: ``pip install -e .`` (``make setup``)
 compiles them in place.
 """
@@ -12,7 +12,7 @@ compiles them in place.
 from Cython.Build import cythonize
 from setuptools import Extension, setup
 
-KERNELS = Extension("knitfem._compiled", ["knitfem/_compiled.pyx"],
+KERNELS = Extension("knitfem.yarn._compiled", ["knitfem/yarn/_compiled.pyx"],
                     extra_compile_args=["-O3"], libraries=["blas"])
 
 setup(
@@ -20,9 +20,11 @@ setup(
     version="0.1.0",
     description="Yarn-level knitted fabric simulation with mechanical level of "
     "detail, on PETSc",
-    packages=["knitfem", "solvers", "benchmarks"],
+    packages=["knitfem", "knitfem.knit", "knitfem.yarn", "knitfem.contact",
+              "knitfem.model", "knitfem.lod", "knitfem.run", "knitfem.cli",
+              "solvers", "benchmarks"],
     package_data={"solvers": ["*.rc"]},
     python_requires=">=3.9",
     ext_modules=cythonize([KERNELS], language_level=3),
-    entry_points={"console_scripts": ["knitfem = knitfem.cli:main"]},
+    entry_points={"console_scripts": ["knitfem = knitfem.cli.main:main"]},
 )

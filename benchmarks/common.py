@@ -42,11 +42,11 @@ import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 
-from knitfem.commands import (build_system, jersey_from_options,  # noqa: E402
+from knitfem.cli.commands import (build_system, jersey_from_options,  # noqa: E402
                               material_from_options, pose_from_options)
-from knitfem.options import KnitError, KnitOptions  # noqa: E402
-from knitfem.scenes import make_fabric  # noqa: E402
-from knitfem.simulation import Simulation  # noqa: E402
+from knitfem.cli.options import KnitError, KnitOptions  # noqa: E402
+from knitfem.cli.scenes import make_fabric  # noqa: E402
+from knitfem.run.simulation import Simulation  # noqa: E402
 from solvers.integrators import INTEGRATORS, SimulationError  # noqa: E402
 
 matplotlib.use("Agg")

@@ -1,5 +1,5 @@
 """What a reduced Newton iteration costs, against the yarn count and the
-volume size, sampled (ECSW, ``knitfem/sampling.py``) and exact.
+volume size, sampled (ECSW, ``knitfem/lod/sampling.py``) and exact.
 
     .venv/bin/python -m benchmarks.lod_cost [-bench_sizes 15x30,30x60,60x120,105x400]
         [-bench_lods 4x4,5x5,7x7,9x9] [-bench_t_end 0.05] [-bench_exact_max 60x120]

@@ -142,11 +142,11 @@ def pulled_case(comm, options, t_end):
     adaptation (or None). Collective."""
     import time
 
-    from knitfem.adapt import adaptation_from_options
-    from knitfem.commands import (build_system, jersey_from_options,
+    from knitfem.lod.adapt import adaptation_from_options
+    from knitfem.cli.commands import (build_system, jersey_from_options,
                                   material_from_options, pull_from_options)
-    from knitfem.scenes import make_fabric
-    from knitfem.simulation import Simulation
+    from knitfem.cli.scenes import make_fabric
+    from knitfem.run.simulation import Simulation
     from solvers.integrators import INTEGRATORS, SimulationError
 
     before, rec, P, adapt = log_snapshot(), dict(forced=dict(options)), None, None
@@ -212,8 +212,8 @@ def reference(comm, path, t_end):
 def near_pull(fabric_X, pull_yarn, pull_s, radius_stitches):
     """Control points within ``radius_stitches`` stitch widths of the pulled
     loop head at rest: a boolean (nyarn, ncp) mask."""
-    from knitfem import bspline
-    from knitfem.pattern import SEGMENTS_PER_STITCH
+    from knitfem.yarn import bspline
+    from knitfem.knit.pattern import SEGMENTS_PER_STITCH
 
     head = bspline.curve_points(fabric_X[pull_yarn], np.array([pull_s]))[0]
     width = np.abs(fabric_X[0, SEGMENTS_PER_STITCH + 1, 0] - fabric_X[0, 1, 0])
@@ -236,8 +236,8 @@ def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name,
                  models=tuple(PULLED_MODELS)):
     """Full (or its reference ``ref_dir``), reduced, and adaptive mixed on the
     pulled swatch; errors near the pull and elsewhere."""
-    from knitfem.adapt import draw_history
-    from knitfem.pattern import Jersey, jersey_fabric
+    from knitfem.lod.adapt import draw_history
+    from knitfem.knit.pattern import Jersey, jersey_fabric
 
     base = dict(knit_rows=rows, knit_cols=cols)
     PETSc.Sys.Print(f"pulled {rows}x{cols} full ...")

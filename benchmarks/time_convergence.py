@@ -37,10 +37,10 @@ import numpy as np
 
 from .common import (PETSc, KnitOptions, forced, markdown_table, record, run,
                      save_figure, write_json)
-from knitfem.commands import (build_system, integrator_from_options,
+from knitfem.cli.commands import (build_system, integrator_from_options,
                               jersey_from_options, material_from_options)
-from knitfem.scenes import make_fabric
-from knitfem.simulation import Simulation
+from knitfem.cli.scenes import make_fabric
+from knitfem.run.simulation import Simulation
 from solvers.integrators import SimulationError
 
 INTEGRATORS = ("implicit", "alpha", "bdf2")

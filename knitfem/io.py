@@ -16,7 +16,7 @@ from io import BytesIO
 import h5py
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
            "draw", "draw_panels", "animate", "VIEWS"]

@@ -23,7 +23,7 @@ from contextlib import ExitStack, contextmanager
 import numpy as np
 from petsc4py import PETSc
 
-from knitfem.assembly import csr_rows
+from knitfem.model.assembly import csr_rows
 
 from .libpetsc import check, library, seqaij_values
 

@@ -2,8 +2,8 @@
 
     M ε̈ = Q(ε, ε̇) + C(ε)ᵀλ,   g(ε) = 0,   C = ∂g/∂ε.
 
-A *system* (``knitfem.model.FullModel``, ``knitfem.reduced.ReducedModel``,
-``knitfem.mixed.MixedModel``) supplies M, ``forces(x, v, Q)``,
+A *system* (``knitfem.model.FullModel``, ``knitfem.lod.reduced.ReducedModel``,
+``knitfem.lod.mixed.MixedModel``) supplies M, ``forces(x, v, Q)``,
 ``stiffness(x, μ, w, xref)`` (K = ∂²E/∂ε² + w Σ μ_i ∇²g_i; with a state
 ``xref``, its axial force linearised from xref: the MIP matrix), the constraints
 ``constraint_residual(x, g)`` and ``constraint_jacobian(x)`` (C, a fixed

@@ -37,7 +37,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from knitfem.assembly import csr_positions, csr_rows
+from knitfem.model.assembly import csr_positions, csr_rows
 
 from .aij import OwnAIJ, storage_pattern, storage_values
 from .libpetsc import Int, library
@@ -310,7 +310,7 @@ class SaddlePoint:
 
 def regularization_option(prefix, comm):
     """τ of -<prefix>saddle_regularization: 1 on more than one rank, else 0."""
-    from knitfem.options import KnitOptions
+    from knitfem.cli.options import KnitOptions
 
     opts = KnitOptions(prefix + "saddle_")
     return opts.getReal("regularization", 1.0 if comm.getSize() > 1 else 0.0,
@@ -383,7 +383,7 @@ def _course_subdomains(saddle, prefix):
     ask for; their own saddle points are factorised (MUMPS LDLᵀ: 25 s
     against LU's 31 s and 1.3 against 1.6 GiB for the 40×80 step) unless
     told."""
-    from knitfem.options import KnitOptions
+    from knitfem.cli.options import KnitOptions
 
     opts = KnitOptions(prefix + "saddle_asm_")
     size = opts.getInt("courses", 4, "courses in a Schwarz subdomain", minimum=1)

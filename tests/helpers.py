@@ -4,11 +4,11 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from knitfem.mixed import MixedModel, MixedSpace, VolumeWeights, stitch_mask
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey, jersey_fabric
-from knitfem.reduced import Embedding, ReducedModel
-from knitfem.volume import BoundingVolume
+from knitfem.lod.mixed import MixedModel, MixedSpace, VolumeWeights, stitch_mask
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey, jersey_fabric
+from knitfem.lod.reduced import Embedding, ReducedModel
+from knitfem.lod.volume import BoundingVolume
 
 
 def jersey(rows=2, cols=2, hold=None):
@@ -76,7 +76,7 @@ def hanging_simulation(fabric, out, **options):
     """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model into
     ``out``, quiet, with the ``Simulation`` options given (output_every,
     checkpoint_every, snapshots, …)."""
-    from knitfem.simulation import Simulation
+    from knitfem.run.simulation import Simulation
     from solvers.integrators import BackwardEuler
 
     model = FullModel(PETSc.COMM_SELF, fabric, Material())

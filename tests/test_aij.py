@@ -4,7 +4,7 @@ matrix: what is written is what PETSc has, on one rank and on several."""
 import numpy as np
 from petsc4py import PETSc
 
-from knitfem.assembly import create_aij, csr_rows
+from knitfem.model.assembly import create_aij, csr_rows
 from solvers.aij import OwnAIJ, storage_pattern, storage_values
 
 COMM = PETSc.COMM_WORLD

@@ -5,10 +5,10 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import to_scipy
-from knitfem import bspline
-from knitfem.fabric import Fabric
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey, jersey_fabric
+from knitfem.yarn import bspline
+from knitfem.knit.fabric import Fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey, jersey_fabric
 
 COMM = PETSc.COMM_SELF
 
@@ -63,7 +63,7 @@ def test_diagonal_block_slots_are_the_full_slots_diagonal_components():
     """``blocks3(diagonal=...)`` gives, for those element sets, the slots of
     entries (3a + d, 3b + d) that the full 3×3 slots give, −1 kept where a
     row is not local."""
-    from knitfem.assembly import ElementPattern
+    from knitfem.model.assembly import ElementPattern
 
     rng = np.random.default_rng(3)
     conns = [np.sort(rng.choice(20, (6, 4)), axis=1), rng.choice(20, (5, 8))]
@@ -90,7 +90,7 @@ def test_curvature_adds_each_contacts_hessian_sum_at_its_diagonal_slots():
     """``Curvature.add``: entry (3k + d, 3l + d) of contact c gets
     w Σ_j μ_cj h_cjkl at its slot, summed where contacts share a slot and
     left out where the slot is −1."""
-    from knitfem.constraint_assembly import Curvature
+    from knitfem.contact.constraint_assembly import Curvature
 
     rng = np.random.default_rng(5)
     n, nnz = 4, 300

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from knitfem import bspline
+from knitfem.yarn import bspline
 
 U = np.linspace(0, 1, 17)
 

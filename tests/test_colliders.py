@@ -7,8 +7,8 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import jersey
-from knitfem.colliders import Capsule, Plane, Sphere, parse_colliders
-from knitfem.model import FullModel, Material
+from knitfem.contact.colliders import Capsule, Plane, Sphere, parse_colliders
+from knitfem.model.full import FullModel, Material
 
 SELF = PETSc.COMM_SELF
 BODIES = {"sphere": Sphere(np.array([0.01, -0.002, 0.0]), 0.004),
@@ -194,7 +194,7 @@ def test_yarn_on_an_inclined_plane_sticks_or_slides_as_coulomb_says(mu):
     backward Euler 0.1 s: without friction it slides with g sin θ, with
     μ = 0.1 with g (sin θ − μ cos θ), with μ = 0.5 it stays (within 2 % of
     the frictionless slide: below μλ a point still moves by up to ε a step)."""
-    from knitfem.fabric import Fabric
+    from knitfem.knit.fabric import Fabric
     from helpers import run
     from solvers.integrators import BackwardEuler
 
@@ -224,7 +224,7 @@ def test_bodies_and_friction_do_not_care_which_way_the_world_faces():
     forces turn with them."""
     import scipy.sparse as sp
 
-    from knitfem.scenes import rotation
+    from knitfem.cli.scenes import rotation
 
     R, shift = rotation((30, -50, 70)), np.array([0.01, -0.02, 0.03])
     fab = jersey(2, 2)
@@ -268,8 +268,8 @@ def test_a_step_through_a_thin_body_is_refused(check):
     Euler steps of 1e-2 s, which carry it farther than rod and yarn are
     thick: the step that would pass through is refused and halved, and the
     yarn rests on the rod. Without the check it falls through."""
-    from knitfem.fabric import Fabric
-    from knitfem.scenes import straight_yarn
+    from knitfem.knit.fabric import Fabric
+    from knitfem.cli.scenes import straight_yarn
     from solvers.integrators import BackwardEuler
 
     rod = Capsule(np.array([0.01, -0.003, -0.01]), np.array([0.01, -0.003, 0.01]), 3e-4)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from helpers import COMM, gather, jersey
-from knitfem import constraints as cons
-from knitfem.model import FullModel, Material
-from knitfem.scenes import rotation
+from knitfem.contact import constraints as cons
+from knitfem.model.full import FullModel, Material
+from knitfem.cli.scenes import rotation
 
 TURNS = [(90, 0, 0), (0, 45, 0), (0, 0, 45), (30, -60, 120)]
 

@@ -343,8 +343,8 @@ def test_directory_made_read_only_mid_run(tmp_path):
 def test_integrator_state_travels_with_the_checkpoint(tmp_path):
     from petsc4py import PETSc
 
-    from knitfem.model import FullModel, Material
-    from knitfem.simulation import Simulation
+    from knitfem.model.full import FullModel, Material
+    from knitfem.run.simulation import Simulation
     from helpers import jersey
     from solvers.integrators import BackwardEuler
 

@@ -12,9 +12,9 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import COMM, jersey, mixed, models, region
-from knitfem.model import Material
-from knitfem.pattern import HOLDS, Jersey, jersey_fabric
-from knitfem.scenes import make_fabric, rotation
+from knitfem.model.full import Material
+from knitfem.knit.pattern import HOLDS, Jersey, jersey_fabric
+from knitfem.cli.scenes import make_fabric, rotation
 from solvers.integrators import BackwardEuler
 
 TURNS = [(45, 0, 0), (0, 45, 0), (0, 0, 45)]
@@ -27,8 +27,8 @@ def system_of(kind, fabric, gravity):
     if kind == "reduced":
         return red
     if kind == "sampled":           # any sampled set and weights will do
-        from knitfem.reduced import ReducedModel
-        from knitfem.sampling import SampledElements
+        from knitfem.lod.reduced import ReducedModel
+        from knitfem.lod.sampling import SampledElements
 
         rng = np.random.default_rng(COMM.rank)
         some = rng.choice(full.elements.ne, full.elements.ne // 4, replace=False)

@@ -6,8 +6,8 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import COMM, energies, gather, jersey, models
-from knitfem.model import FullModel, Material
-from knitfem.scenes import make_fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.cli.scenes import make_fabric
 from solvers.integrators import BDF2, BackwardEuler, GeneralizedAlpha, SimulationError
 from solvers.stepping import PositionHistory, StepControl
 
@@ -169,7 +169,7 @@ def test_newton_matrix_is_the_derivative_of_the_residual(method):
     the frame-indifferent contacts' curvature, C(ε) and its transpose)
     equals central differences of the method's residual in (ε̇_{n+1}, μ),
     at a generic state of a hanging jersey after two steps."""
-    from knitfem.pattern import Jersey
+    from knitfem.knit.pattern import Jersey
 
     model = FullModel(SELF, make_fabric("hanging", Jersey(3, 3)), Material(damping=2.0))
     integ = method(model, 1e-2)

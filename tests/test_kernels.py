@@ -1,4 +1,4 @@
-"""The compiled yarn kernels equal the numpy reference (``knitfem.kernels``).
+"""The compiled yarn kernels equal the numpy reference (``knitfem.yarn.kernels``).
 
 Element gradients and Hessians, the assembled gradient and the CSR values of
 K agree to 1e-12 relative on curved, torsioned yarns (κ₀ > 0), on yarns
@@ -12,11 +12,11 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import jersey, to_scipy
-from knitfem.assembly import ElementPattern
-from knitfem.kernels import KINDS, yarn_kernels
-from knitfem.model import FullModel, Material
-from knitfem.options import KnitError
-from knitfem.yarn import YarnElements
+from knitfem.model.assembly import ElementPattern
+from knitfem.yarn.kernels import KINDS, yarn_kernels
+from knitfem.model.full import FullModel, Material
+from knitfem.errors import KnitError
+from knitfem.yarn.elements import YarnElements
 from test_yarn import chain, deformed, helix, relative
 
 TOL = 1e-12

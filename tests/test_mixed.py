@@ -6,9 +6,9 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import COMM, gather, jersey, mixed, models, region, run, to_scipy
-from knitfem import constraints as cons
-from knitfem.mixed import VolumeWeights, parse_regions
-from knitfem.options import KnitError
+from knitfem.contact import constraints as cons
+from knitfem.lod.mixed import VolumeWeights, parse_regions
+from knitfem.errors import KnitError
 from solvers.integrators import BackwardEuler
 
 SELF = PETSc.COMM_SELF
@@ -131,8 +131,8 @@ def test_bad_region_is_one_line(text):
 def test_point_load_vector_sums_to_the_force():
     """Σ_a b_a(u) F over the four control points is F (partition of unity),
     and its moment about the origin is P(s) × F (linear precision)."""
-    from knitfem.pattern import Jersey
-    from knitfem.scenes import pulled
+    from knitfem.knit.pattern import Jersey
+    from knitfem.cli.scenes import pulled
 
     j = Jersey(3, 4)
     F = np.array([0.1, -0.3, 0.2])
@@ -141,7 +141,7 @@ def test_point_load_vector_sums_to_the_force():
     assert np.allclose(Q.sum(0), F, rtol=0, atol=1e-15)
     X = fab.X.reshape(-1, 3)
     P = X[np.abs(Q).sum(1) > 0].T @ np.abs(Q[np.abs(Q).sum(1) > 0, :1]) / abs(F[0])
-    from knitfem import bspline
+    from knitfem.yarn import bspline
     head = bspline.curve_points(fab.X[1], j.heads(1)[[2]])[0]
     assert np.allclose(P.ravel(), head, rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match="outside"):
@@ -149,7 +149,7 @@ def test_point_load_vector_sums_to_the_force():
 
 
 def indicator(fabric, lod=LOD):
-    from knitfem.adapt import Indicator
+    from knitfem.lod.adapt import Indicator
 
     full, red = models(COMM, fabric, lod=lod)
     return full, red, Indicator(full, red.embedding,
@@ -160,8 +160,8 @@ def test_indicator_vanishes_in_range_and_sees_a_point_load():
     """Free fabric at rest under gravity: the full model's acceleration is g
     everywhere, in range(Γ), so η = 0 and δ = 0 to round-off. A point load
     makes η largest on the loaded patch."""
-    from knitfem.pattern import Jersey
-    from knitfem.scenes import pulled
+    from knitfem.knit.pattern import Jersey
+    from knitfem.cli.scenes import pulled
 
     full, _, ind = indicator(jersey(6, 6))
     eta, dist = ind(full.rest_state())
@@ -181,7 +181,7 @@ def test_transfer_keeps_momentum(patches):
     """Refine and coarsen a free fabric in motion: linear momentum 1ᵀMε̇ is
     kept to round-off (contacts are internal), and the transferred state
     satisfies the new constraints."""
-    from knitfem.adapt import transfer
+    from knitfem.lod.adapt import transfer
 
     fab = jersey(6, 6)
     full, red = models(COMM, fab, lod=LOD)

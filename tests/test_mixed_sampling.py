@@ -11,8 +11,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from helpers import COMM, gather, jersey, models, region, run, to_scipy
-from knitfem.mixed import MixedModel, MixedSpace, VolumeWeights, trained
-from knitfem.model import Material
+from knitfem.lod.mixed import MixedModel, MixedSpace, VolumeWeights, trained
+from knitfem.model.full import Material
 from solvers.integrators import BackwardEuler
 
 LOD = (5, 5)       # 2 x 2 patches of 3 x 3 stitches

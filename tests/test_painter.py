@@ -12,8 +12,8 @@ from petsc4py import PETSc
 
 from helpers import hanging_simulation, jersey
 from knitfem import io
-from knitfem.output import OutputDirectory, OutputError
-from knitfem.painter import Painter
+from knitfem.run.output import OutputDirectory, OutputError
+from knitfem.run.painter import Painter
 
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
                                 reason="the worker belongs to rank 0")

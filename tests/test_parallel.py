@@ -5,8 +5,8 @@ import pytest
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey, jersey_fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey, jersey_fabric
 
 
 def local_rows_equal(A, ref):
@@ -128,8 +128,8 @@ def test_sampled_reduced_model_sums_every_ranks_elements():
     weight 1, so that it is exact): forces and Γᵀ K Γ, gathered α and summed
     over the ranks, equal the exact reduced model's."""
     from helpers import models as pair, to_scipy
-    from knitfem.reduced import ReducedModel
-    from knitfem.sampling import SampledElements
+    from knitfem.lod.reduced import ReducedModel
+    from knitfem.lod.sampling import SampledElements
 
     full, red = pair(PETSc.COMM_WORLD, jersey_fabric(Jersey(4, 3), hold="top"))
     ne = full.elements.ne

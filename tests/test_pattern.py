@@ -4,8 +4,9 @@ penetration at rest."""
 import numpy as np
 import pytest
 
-from knitfem import bspline, constraints
-from knitfem.pattern import DT, T0, Jersey, jersey_fabric, min_yarn_distance
+from knitfem.yarn import bspline
+from knitfem.contact import constraints
+from knitfem.knit.pattern import DT, T0, Jersey, jersey_fabric, min_yarn_distance
 
 
 def test_control_point_count_and_interpolation():

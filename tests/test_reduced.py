@@ -5,7 +5,7 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import COMM, gather, jersey, models, run, to_scipy
-from knitfem.model import Material
+from knitfem.model.full import Material
 from solvers.integrators import BackwardEuler, SymplecticEuler
 
 SELF = PETSc.COMM_SELF

@@ -6,8 +6,8 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import to_scipy
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey, jersey_fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey, jersey_fabric
 from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, saddle_ksp,
                             solve_saddle)
 

@@ -8,10 +8,10 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import jersey, models, to_scipy
-from knitfem import sampling
-from knitfem.model import Material
-from knitfem.reduced import ReducedModel
-from knitfem.sampling import SampledElements, greedy_nnls, sampled_set
+from knitfem.lod import sampling
+from knitfem.model.full import Material
+from knitfem.lod.reduced import ReducedModel
+from knitfem.lod.sampling import SampledElements, greedy_nnls, sampled_set
 
 SELF = PETSc.COMM_SELF
 
@@ -49,7 +49,7 @@ def test_every_element_at_weight_one_is_the_exact_model(kernels, fill, monkeypat
     """(Γ̃_S dense, and sparse with a fill no matrix reaches.)"""
     monkeypatch.setattr(sampling, "DENSE_FILL", fill)
     full, red = models(SELF, jersey(3, 3, hold="top"))
-    full.kernels = __import__("knitfem.kernels", fromlist=["yarn_kernels"]).yarn_kernels(
+    full.kernels = __import__("knitfem.yarn.kernels", fromlist=["yarn_kernels"]).yarn_kernels(
         full.elements, kernels)
     ne = full.elements.ne
     s = sampled(full, red, np.arange(ne), np.ones(ne))
@@ -156,7 +156,7 @@ def test_quadrature_baseline_weights_stand_for_every_element():
     """Two stitches a patch, weighted by the patch's elements: the weights
     sum to the number of elements (a uniform strain is integrated exactly),
     and its force error, measured, is larger than the trained set's."""
-    from knitfem.sampling import quadrature_set
+    from knitfem.lod.sampling import quadrature_set
 
     full, red = models(SELF, jersey(8, 8, hold="top"))
     el, w, rep = quadrature_set(full, red.embedding)

@@ -1,16 +1,16 @@
 """The reduced model whose stretch reads the bounding volume as a shell
-(``knitfem.shell``): derivatives, invariants, and the reason it exists."""
+(``knitfem.lod.shell``): derivatives, invariants, and the reason it exists."""
 
 import numpy as np
 import pytest
 from petsc4py import PETSc
 
 from helpers import jersey
-from knitfem.pattern import Jersey, jersey_fabric
-from knitfem.model import FullModel, Material
-from knitfem.reduced import Embedding, ReducedModel
-from knitfem.shell import ShellStretch
-from knitfem.volume import BoundingVolume
+from knitfem.knit.pattern import Jersey, jersey_fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.lod.reduced import Embedding, ReducedModel
+from knitfem.lod.shell import ShellStretch
+from knitfem.lod.volume import BoundingVolume
 
 COMM = PETSc.COMM_WORLD
 

@@ -6,8 +6,8 @@ import scipy.linalg as sl
 from petsc4py import PETSc
 
 from helpers import to_scipy
-from knitfem.model import FullModel, Material
-from knitfem.scenes import make_fabric
+from knitfem.model.full import FullModel, Material
+from knitfem.cli.scenes import make_fabric
 from solvers.integrators import SymplecticEuler
 from solvers.stability import stable_step
 

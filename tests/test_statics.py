@@ -12,10 +12,10 @@ from scipy.integrate import solve_bvp
 from scipy.optimize import brentq
 
 from helpers import COMM, gather, jersey, run
-from knitfem import bspline
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey
-from knitfem.scenes import make_fabric
+from knitfem.yarn import bspline
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey
+from knitfem.cli.scenes import make_fabric
 from solvers.integrators import BackwardEuler
 from solvers.statics import StaticSolver
 
@@ -183,7 +183,7 @@ def test_knit_resting_on_a_body_is_in_equilibrium_against_it():
     """A 4 x 4 swatch held by its top course, started lifted 30° out, with a
     sphere behind where it would hang: the static solve ends pressed on the
     sphere (pushed out to +z, no yarn surface inside) at |F| ~ round-off."""
-    from knitfem.colliders import Sphere
+    from knitfem.contact.colliders import Sphere
 
     fab = make_fabric("hanging", jersey=Jersey(4, 4), tilt=30.0)
     X = fab.X.reshape(-1, 3)

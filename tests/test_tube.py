@@ -11,14 +11,14 @@ import pytest
 from petsc4py import PETSc
 
 from helpers import COMM, gather
-from knitfem import bspline
-from knitfem.kernels import KINDS
-from knitfem.model import FullModel, Material
-from knitfem.pattern import Jersey, jersey_fabric, min_yarn_distance
-from knitfem.reduced import Embedding, ReducedModel
-from knitfem.scenes import rotation
-from knitfem.volume import BoundingVolume
-from knitfem.yarn import YarnElements
+from knitfem.yarn import bspline
+from knitfem.yarn.kernels import KINDS
+from knitfem.model.full import FullModel, Material
+from knitfem.knit.pattern import Jersey, jersey_fabric, min_yarn_distance
+from knitfem.lod.reduced import Embedding, ReducedModel
+from knitfem.cli.scenes import rotation
+from knitfem.lod.volume import BoundingVolume
+from knitfem.yarn.elements import YarnElements
 from solvers.integrators import BackwardEuler
 from test_yarn import central_differences, dense_hessian, gradient, relative
 

@@ -1,4 +1,4 @@
-"""Bounding volume V and the stitches-fitting rows Γ̃ (knitfem.volume).
+"""Bounding volume V and the stitches-fitting rows Γ̃ (knitfem.lod.volume).
 
 Γ̃ must be exact: its rows are a partition of unity, so it reproduces affine
 maps of the control net to rounding; Newton inversion of the volume map is
@@ -9,8 +9,8 @@ meshes/volume_5x5x2.vtu is the paper's 5×5×2 net: the `around` box of the
 control points of a flat 15 × 30 jersey (pattern.Jersey(15, 30) defaults),
 with a margin of one yarn radius. It was written by
 
-    from knitfem.pattern import Jersey
-    from knitfem.volume import BoundingVolume
+    from knitfem.knit.pattern import Jersey
+    from knitfem.lod.volume import BoundingVolume
     j = Jersey(15, 30)
     BoundingVolume.around(j.all_control_points(), 5, 5, j.radius).save(
         "meshes/volume_5x5x2.vtu")
@@ -22,8 +22,8 @@ import meshio
 import numpy as np
 import pytest
 
-from knitfem import bspline
-from knitfem.volume import DEFAULT_AMOUNTS, BoundingVolume
+from knitfem.yarn import bspline
+from knitfem.lod.volume import DEFAULT_AMOUNTS, BoundingVolume
 
 MESHES = Path(__file__).resolve().parent.parent / "meshes"
 
@@ -261,7 +261,7 @@ def test_malformed_files_are_refused(tmp_path):
 
 
 def test_example_volume_encloses_the_15x30_jersey():
-    pattern = pytest.importorskip("knitfem.pattern")
+    pattern = pytest.importorskip("knitfem.knit.pattern")
     V = BoundingVolume.load(MESHES / "volume_5x5x2.vtu")
     assert (V.n1, V.n2, V.size) == (5, 5, 50)
     jersey = pattern.Jersey(15, 30)

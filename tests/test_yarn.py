@@ -4,14 +4,14 @@ The rest yarns are perturbed helices (curved and torsioned, so that κ₀ > 0 an
 both energies matter); the current configuration is a random perturbation of
 the rest. Gradients are checked against central differences of the energy,
 Hessians against central differences of the gradient, for both kernels
-(``knitfem.kernels``: the numpy reference and the compiled loops).
+(``knitfem.yarn.kernels``: the numpy reference and the compiled loops).
 """
 
 import numpy as np
 import pytest
 
-from knitfem.kernels import KINDS, yarn_kernels
-from knitfem.yarn import YarnElements, chain_rule, stretch_terms
+from knitfem.yarn.kernels import KINDS, yarn_kernels
+from knitfem.yarn.elements import YarnElements, chain_rule, stretch_terms
 
 RHO, EA, EI = 0.3, 10.0, 1e-2
 NCP = 10

@@ -28,12 +28,12 @@ from mpi4py import MPI
 from petsc4py import PETSc
 from solvers.aij import OwnAIJ
 
-from . import constraints as cons
-from .assembly import ElementPattern, YarnLayout, create_aij, kron_identity
-from .colliders import Barrier
-from .constraint_assembly import ConstraintAssembly
-from .kernels import yarn_kernels
-from .yarn import YarnElements
+from knitfem.contact import constraints as cons
+from knitfem.model.assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from knitfem.contact.colliders import Barrier
+from knitfem.contact.constraint_assembly import ConstraintAssembly
+from knitfem.yarn.kernels import yarn_kernels
+from knitfem.yarn.elements import YarnElements
 
 __all__ = ["Material", "FullModel", "applied_forces"]
 

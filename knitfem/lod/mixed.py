@@ -58,15 +58,16 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from . import bspline, constraints as cons
-from .assembly import ElementPattern, create_aij, kron_identity
-from .kernels import yarn_kernels
-from .model import EV_FORCES, EV_TANGENT, applied_forces
-from .options import KnitError
-from .pattern import SEGMENTS_PER_STITCH
-from .reduced import EV_PTAP, EmbeddedModel, sampling_options
-from .sampling import SampledElements, over_ranks, sampled_set
-from .yarn import YarnElements
+from knitfem.yarn import bspline
+from knitfem.contact import constraints as cons
+from knitfem.model.assembly import ElementPattern, create_aij, kron_identity
+from knitfem.yarn.kernels import yarn_kernels
+from knitfem.model.full import EV_FORCES, EV_TANGENT, applied_forces
+from knitfem.errors import KnitError
+from knitfem.knit.pattern import SEGMENTS_PER_STITCH
+from knitfem.lod.reduced import EV_PTAP, EmbeddedModel, sampling_options
+from knitfem.lod.sampling import SampledElements, over_ranks, sampled_set
+from knitfem.yarn.elements import YarnElements
 
 __all__ = ["VolumeWeights", "MixedSpace", "MixedModel", "trained", "stitch_mask",
            "parse_regions", "regions_from_options", "mixed_from_options"]

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["Fabric"]
 

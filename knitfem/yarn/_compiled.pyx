@@ -2,7 +2,7 @@
 # cython: cdivision=True, initializedcheck=False
 """Compiled yarn kernels: loops over elements × quadrature points in C.
 
-The same mathematics as ``knitfem.yarn`` (its module docstring gives the
+The same mathematics as ``knitfem.yarn.elements`` (its module docstring gives the
 chain rule, ``stretch_terms`` and ``bend_terms`` the point derivatives), one
 point at a time. At every point (e, q), with y = (x', x'') = D_q p_e,
 
@@ -16,7 +16,7 @@ CSR values through each element entry's slot, and the reduced Hessian
 Γᵀ K Γ into a dense matrix. Nothing here allocates per call except small
 stack arrays; no Python object is touched inside the loops.
 
-Built by ``pip install -e .`` (setup.py); ``knitfem.kernels`` chooses between
+Built by ``pip install -e .`` (setup.py); ``knitfem.yarn.kernels`` chooses between
 these kernels and the numpy reference.
 """
 
@@ -26,7 +26,7 @@ from libc.string cimport memcpy, memset
 
 from cython.view cimport array as cvarray
 
-# Raised whenever a kernel's arguments change: knitfem.kernels refuses an
+# Raised whenever a kernel's arguments change: knitfem.yarn.kernels refuses an
 # extension built from an older source (run make setup).
 VERSION = 4
 

@@ -28,10 +28,10 @@ are taken where the turned start puts them).
 
 import numpy as np
 
-from . import bspline
-from .colliders import Sphere
-from .fabric import Fabric
-from .pattern import jersey_fabric
+from knitfem.yarn import bspline
+from knitfem.contact.colliders import Sphere
+from knitfem.knit.fabric import Fabric
+from knitfem.knit.pattern import jersey_fabric
 
 __all__ = ["SCENES", "make_fabric", "rotation", "straight_yarn", "arc_yarn"]
 

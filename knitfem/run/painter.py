@@ -1,6 +1,6 @@
 """A run's pictures, drawn in a worker process beside the stepping.
 
-    painter = Painter()                     # rank 0: python -m knitfem.painter
+    painter = Painter()                     # rank 0: python -m knitfem.run.painter
     painter.submit("draw", path, P, radius, title=...)   # returns at once
     painter.finish()                        # waits; raises the first job's error
 
@@ -37,14 +37,15 @@ class Painter:
     handler would turn into a crash."""
 
     def __init__(self):
-        here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        here = os.path.dirname(os.path.dirname(os.path.dirname(
+            os.path.abspath(__file__))))
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
         self.sock, theirs = socket.socketpair()
         # the worker starts with the stop signals blocked, until it ignores them
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, STOPS)
         try:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "knitfem.painter", str(theirs.fileno())],
+                [sys.executable, "-m", "knitfem.run.painter", str(theirs.fileno())],
                 pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
                 env=dict(os.environ, PYTHONPATH=path))
         finally:
@@ -81,7 +82,7 @@ class Painter:
             raise error
 
     def _died(self):
-        from .output import OutputError
+        from knitfem.run.output import OutputError
 
         code = self.proc.wait()
         how = (f"was killed by {signal.Signals(-code).name}" if code < 0
@@ -114,7 +115,7 @@ def main(fd):
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)
     os.nice(19)              # a core the ranks leave idle; never one they use
-    from . import io
+    from knitfem import io
 
     try:
         io._pyplot()                     # the import, while the run sets up

@@ -61,7 +61,7 @@ from petsc4py import PETSc
 
 from solvers.saddle import SaddlePoint, saddle_ksp, solve_saddle
 
-from .mixed import MixedModel, MixedSpace
+from knitfem.lod.mixed import MixedModel, MixedSpace
 
 __all__ = ["Indicator", "Adaptation", "transfer", "adaptation_from_options"]
 
@@ -335,7 +335,7 @@ def draw_history(path, fabric, weights, history, refine, coarsen, panels=4):
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
-    from . import io
+    from knitfem import io
 
     pick = np.unique(np.linspace(0, len(history) - 1, panels).round().astype(int))
     fig, axes = plt.subplots(1, len(pick) + 1, figsize=(4.2 * (len(pick) + 1), 3.2),
@@ -395,7 +395,7 @@ def adaptation_from_options(opts, system):
     """The indicator (and, with -knit_adapt, adaptation) of a mixed model;
     None for the other models."""
     adapt, every, refine, coarsen, dwell = adapt_options(opts)
-    from .options import KnitError
+    from knitfem.errors import KnitError
 
     if system.kind != "mixed":
         if adapt:

@@ -30,8 +30,8 @@ import time
 
 import numpy as np
 
-from . import io
-from .options import KnitError
+from knitfem import io
+from knitfem.errors import KnitError
 
 __all__ = ["OutputDirectory", "OutputError", "Checkpoint", "FINGERPRINT_OPTIONS",
            "CHANGEABLE", "restart_command", "version"]

@@ -1,9 +1,9 @@
 """Yarn kernels behind one switch: compiled loops (default) or the numpy reference.
 
 ``-knit_kernels compiled`` runs the loops over elements × quadrature points of
-``knitfem/_compiled.pyx`` (Cython, built by ``pip install -e .``, i.e. ``make
+``knitfem/yarn/_compiled.pyx`` (Cython, built by ``pip install -e .``, i.e. ``make
 setup``); ``-knit_kernels numpy`` runs the vectorised reference of
-``knitfem.yarn``. Both compute, for the elements of a ``YarnElements``,
+``knitfem.yarn.elements``. Both compute, for the elements of a ``YarnElements``,
 
     add_gradient(x, out, scale)          out += scale · ∂E/∂p            (ncp, 3)
     hessian_values(x, slot, values, xref)  values = Σ_e K_e, K_e[m, n] added at
@@ -11,33 +11,33 @@ setup``); ``-knit_kernels numpy`` runs the vectorised reference of
     element_gradient(x), element_hessian(x, xref)   (ne, 12), (ne, 12, 12)
 
 with E = E_s + E_b (``xref``, optional: the axial force of the Newton matrix
-linearised from the state xref, ``yarn.stretch_terms``), and the same mathematics (``knitfem.yarn``'s docstring);
+linearised from the state xref, ``yarn.stretch_terms``), and the same mathematics (``knitfem.yarn.elements``'s docstring);
 the tests hold them equal to 1e-12 relative. x is (ncp, 3), C-contiguous
 (a view of a PETSc Vec's array will do).
 """
 
 import numpy as np
 
-from .options import KnitError
+from knitfem.errors import KnitError
 
 __all__ = ["KINDS", "yarn_kernels", "compiled_module"]
 
 KINDS = ("compiled", "numpy")
-VERSION = 4                 # of knitfem/_compiled.pyx, which this module calls
+VERSION = 4                 # of knitfem/yarn/_compiled.pyx, which this module calls
 
 
 def compiled_module():
-    """The compiled extension ``knitfem._compiled``, or a KnitError saying how
+    """The compiled extension ``knitfem.yarn._compiled``, or a KnitError saying how
     to build it (not built, or built from an older source)."""
     try:
-        from . import _compiled
+        from knitfem.yarn import _compiled
     except ImportError as err:
         raise KnitError(f"the compiled kernels are not built ({err}): run `make "
                         "setup` (or `pip install -e .`), or use -knit_kernels "
                         "numpy") from None
     if getattr(_compiled, "VERSION", None) != VERSION:
         raise KnitError("the compiled kernels were built from an older "
-                        "knitfem/_compiled.pyx: run `make setup` (or `pip install "
+                        "knitfem/yarn/_compiled.pyx: run `make setup` (or `pip install "
                         "-e .`), or use -knit_kernels numpy")
     return _compiled
 
@@ -65,7 +65,7 @@ class NumpyKernels:
 
 
 class CompiledKernels:
-    """The loops of ``knitfem._compiled`` on the arrays of a ``YarnElements``."""
+    """The loops of ``knitfem.yarn._compiled`` on the arrays of a ``YarnElements``."""
 
     kind = "compiled"
 

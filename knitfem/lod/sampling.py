@@ -45,10 +45,10 @@ import numpy as np
 
 from scipy import sparse
 
-from .assembly import ElementPattern
-from .kernels import yarn_kernels
-from .reduced import GroupedTangent
-from .yarn import YarnElements
+from knitfem.model.assembly import ElementPattern
+from knitfem.yarn.kernels import yarn_kernels
+from knitfem.lod.grouped_tangent import GroupedTangent
+from knitfem.yarn.elements import YarnElements
 
 __all__ = ["SampledElements", "sampled_set", "quadrature_set", "over_ranks", "VERSION"]
 
@@ -337,7 +337,7 @@ def sampled_set(full, embedding, tol, subset=None):
     elements ``subset`` when given, see ``train``): from the cache when it
     holds this problem's, else trained and cached (a cache that cannot be
     written is only not used)."""
-    from .io import atomic_write
+    from knitfem.io import atomic_write
 
     path = os.path.join(cache_dir(), cache_key(full, embedding, tol, subset) + ".npz")
     try:

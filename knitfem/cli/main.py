@@ -47,7 +47,7 @@ def main(argv=None):
     command = argv[1] if len(argv) > 1 and not argv[1].startswith("-") else None
     rest = argv[2 if command else 1:]
     wants_help = any(a in HELP for a in rest)
-    from .interrupts import Interrupted, install
+    from knitfem.run.interrupts import Interrupted, install
 
     install()
     try:
@@ -63,7 +63,7 @@ def _command(command, wants_help):
 
     from solvers.integrators import SimulationError
 
-    from .options import OURS, KnitError, KnitOptions, unused_options
+    from knitfem.cli.options import OURS, KnitError, KnitOptions, unused_options
 
     if command is None:
         PETSc.Sys.Print(USAGE)
@@ -74,7 +74,7 @@ def _command(command, wants_help):
         return 2
     KnitOptions.help = wants_help
     given = set(PETSc.Options().getAll())        # the user's, before any default
-    from . import commands
+    from knitfem.cli import commands
 
     try:
         status = getattr(commands, command)(PETSc.COMM_WORLD) or 0
@@ -109,6 +109,3 @@ def prefix_hint(names):
     return (f"; solvers read their model's prefix: -full_{bare[0]} (or -reduced_, "
             f"-mixed_, -static_)")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

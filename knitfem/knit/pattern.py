@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["LoopShape", "Jersey", "SHAPES", "min_yarn_distance"]
 
@@ -210,7 +210,7 @@ def jersey_fabric(jersey, hold=None):
     loop heads of the top course, "side" the heads of the first stitch of
     every course, "corner" the head of the top course's first stitch, or
     None (free)."""
-    from .fabric import Fabric
+    from knitfem.knit.fabric import Fabric
 
     X = np.stack([jersey.control_points(f) for f in range(jersey.rows)])
     k, sa, sb = jersey.contacts()

@@ -22,10 +22,11 @@ thing about α.
 import numpy as np
 from petsc4py import PETSc
 
-from .assembly import create_aij, kron_identity
-from .model import EV_FORCES, applied_forces, max_over_ranks
-from .options import KnitError
-from .volume import BoundingVolume
+from knitfem.model.assembly import create_aij, kron_identity
+from knitfem.model.full import EV_FORCES, applied_forces, max_over_ranks
+from knitfem.errors import KnitError
+from knitfem.lod.grouped_tangent import GroupedTangent
+from knitfem.lod.volume import BoundingVolume
 
 __all__ = ["Embedding", "ReducedModel", "embedding_from_options", "stretch_options"]
 
@@ -80,63 +81,6 @@ class Embedding:
         self.Gamma_scalar.destroy()
 
 
-class GroupedTangent:
-    """Γᵀ K Γ as a dense (3n, 3n) array from the values of K (local rows), by
-    the compiled kernel ``reduce_tangent``.
-
-    With Γ = Γ̃ ⊗ I₃ and K^{ij} the scalar matrix of the (i, j) components of
-    K's 3 × 3 blocks,
-
-        (Γᵀ K Γ)_{(c,i),(d,j)} = R^{ij}_{cd},   R^{ij} = Γ̃ᵀ K^{ij} Γ̃,   R^{ji} = (R^{ij})ᵀ,
-
-    (K is symmetric), so the six pairs i ≤ j suffice. Yarn control points in
-    the same patch of V share the columns P of their rows of Γ̃ (4·4·2 of
-    them); a group is a patch's points whose neighbours q (K_pq ≠ 0) all lie
-    in it, or the rest of them, and with U the columns the group reaches,
-
-        R^{ij}[P, U] += Γ̃_{·P}ᵀ Y^{ij},   Y^{ij}_p = Σ_q K^{ij}_{pq} Γ̃_{qU},
-
-    Y formed for a few dozen points at a time and multiplied at once (BLAS
-    dgemm) while it is in cache. K couples no two yarns, so every rank forms
-    the sum over its own yarns.
-    """
-
-    def __init__(self, pattern, cols, vals, nvolume):
-        """``pattern``: the points' ``ElementPattern``; (cols, vals): their
-        rows of Γ̃; ``nvolume``: the volume's control points."""
-        from .kernels import compiled_module
-
-        self.module = compiled_module()
-        neighbour = pattern.indices - pattern.row_start
-        rows = np.repeat(np.arange(len(cols)), np.diff(pattern.indptr))
-        keys, patch = np.unique(cols, axis=0, return_inverse=True)
-        patch = patch.ravel()
-        outside = np.zeros(len(cols), dtype=bool)        # a neighbour elsewhere
-        np.logical_or.at(outside, rows, patch[neighbour] != patch[rows])
-        groups, group = np.unique(2 * patch + outside, return_inverse=True)
-        order = np.argsort(group, kind="stable")
-        start = np.searchsorted(group[order], np.arange(len(groups) + 1))
-        reach = [np.unique(cols[neighbour[np.isin(rows, order[a:b])]])
-                 for a, b in zip(start[:-1], start[1:])]
-        width = np.array([len(r) for r in reach], dtype=np.int64)
-        padded = np.zeros((len(groups), max(width, default=1)), dtype=np.int64)
-        gmap = np.full((len(groups), nvolume), -1, dtype=np.int32)
-        for g, r in enumerate(reach):
-            padded[g, :len(r)] = r
-            gmap[g, r] = np.arange(len(r))
-        self.args = (np.ascontiguousarray(pattern.indptr, dtype=np.int64),
-                     np.ascontiguousarray(neighbour, dtype=np.int64),
-                     np.ascontiguousarray(cols, dtype=np.int64),
-                     np.ascontiguousarray(vals), order.astype(np.int64),
-                     start.astype(np.int64), keys[groups // 2].astype(np.int64),
-                     padded, width, gmap)
-
-    def __call__(self, values, out):
-        """out (3n, 3n) = Γᵀ K Γ over this rank's yarns, K given by its values."""
-        self.module.reduce_tangent(values, *self.args, out)
-        return out
-
-
 def volume_options(opts, bodies=False):
     """((n1, n2), path) from -knit_lod n1,n2 (default 5,5; 6,6 with bodies,
     which a volume of three patches a way can wrap) and -knit_volume FILE."""
@@ -176,8 +120,8 @@ def reduced_from_options(opts, full, embedding):
     from the cache, said in one line) unless exact is asked for, bodies
     need every yarn point or the stretch is the shell's (-knit_stretch
     shell: ``full`` was built without its own, ``stretch_options``)."""
-    from .sampling import SampledElements, over_ranks, quadrature_set, sampled_set
-    from .shell import ShellStretch
+    from knitfem.lod.sampling import SampledElements, over_ranks, quadrature_set, sampled_set
+    from knitfem.lod.shell import ShellStretch
 
     kind, tol = sampling_options(opts)
     if not full.stretch:
@@ -216,7 +160,7 @@ def sampling_note(system):
 
 def embedding_from_options(opts, comm, fabric, layout=None):
     """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ."""
-    from .assembly import YarnLayout
+    from knitfem.model.assembly import YarnLayout
 
     lod, path = volume_options(opts, bool(fabric.bodies))
     if path:
@@ -373,7 +317,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
 
     def _world_constraints(self):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""
-        from . import constraints as cons
+        from knitfem.contact import constraints as cons
 
         _, allc = cons.build(self.fabric)
         vol = self.embedding.volume

@@ -6,8 +6,8 @@ import os
 import numpy as np
 from petsc4py import PETSc
 
-from .options import KnitError, KnitOptions
-from .pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric, min_yarn_distance
+from knitfem.cli.options import KnitError, KnitOptions
+from knitfem.knit.pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
 __all__ = ["dofs", "pattern", "run", "deform"]
 
@@ -56,8 +56,8 @@ def output_dir(path):
 
 def dofs(comm):
     """Print the unknowns table (Figure 9) counted from the assembled objects."""
-    from .model import FullModel, Material
-    from .reduced import embedding_from_options, volume_options
+    from knitfem.model.full import FullModel, Material
+    from knitfem.lod.reduced import embedding_from_options, volume_options
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts, 15, 30)
@@ -112,7 +112,7 @@ def dofs(comm):
 
 def pattern(comm):
     """Write a jersey's (or a tube's) centrelines (VTU) and a PNG picture."""
-    from . import io
+    from knitfem import io
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
@@ -153,7 +153,7 @@ slides off it."""
 def material_from_options(opts, scene=None):
     """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping
     (default: the scene's air drag)."""
-    from .model import Material
+    from knitfem.model.full import Material
 
     d = Material(damping=AIR_DRAG.get(scene, 0.0))
     return Material(
@@ -170,9 +170,9 @@ def model_options(opts):
     """(model, Gauss points, kernels) from -knit_model, -knit_quadrature,
     -knit_kernels; declares the options read only for some models, too
     (-knit_lod, -knit_volume; -knit_full_region(s))."""
-    from .kernels import KINDS
-    from .mixed import region_options
-    from .reduced import sampling_options, stretch_options, volume_options
+    from knitfem.yarn.kernels import KINDS
+    from knitfem.lod.mixed import region_options
+    from knitfem.lod.reduced import sampling_options, stretch_options, volume_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
@@ -188,9 +188,9 @@ def model_options(opts):
 
 def build_system(comm, opts, fabric, material):
     """The full, reduced or mixed model of -knit_model, from a fabric."""
-    from .mixed import mixed_from_options
-    from .model import FullModel
-    from .reduced import embedding_from_options, reduced_from_options, stretch_options
+    from knitfem.lod.mixed import mixed_from_options
+    from knitfem.model.full import FullModel
+    from knitfem.lod.reduced import embedding_from_options, reduced_from_options, stretch_options
 
     kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
@@ -253,7 +253,7 @@ def pose_from_options(opts):
 
 def colliders_from_options(opts):
     """Rigid bodies of -knit_collider (``colliders.parse_colliders``)."""
-    from .colliders import parse_colliders
+    from knitfem.contact.colliders import parse_colliders
 
     text = opts.getString("collider", "", "rigid bodies the yarns keep out of: "
                           "sphere:cx,cy,cz,R, capsule:x0,y0,z0,x1,y1,z1,R, "
@@ -342,12 +342,12 @@ def run(comm):
     from solvers.integrators import SimulationError
     from solvers.statics import StaticSolver
 
-    from .adapt import adapt_options, adaptation_from_options
-    from .interrupts import Interrupted
-    from .output import CHANGEABLE, OutputDirectory
-    from .painter import Painter
-    from .scenes import SCENES, make_fabric
-    from .simulation import Simulation
+    from knitfem.lod.adapt import adapt_options, adaptation_from_options
+    from knitfem.run.interrupts import Interrupted
+    from knitfem.run.output import CHANGEABLE, OutputDirectory
+    from knitfem.run.painter import Painter
+    from knitfem.cli.scenes import SCENES, make_fabric
+    from knitfem.run.simulation import Simulation
 
     opts = KnitOptions()
     scene = opts.getChoice("scene", "hanging", SCENES, "scene")
@@ -429,7 +429,7 @@ def run(comm):
         fabric.friction = friction
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
-        from .reduced import sampling_note
+        from knitfem.lod.reduced import sampling_note
 
         PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model"
                         f"{sampling_note(system)}, {n} coordinates "
@@ -495,7 +495,7 @@ def explicit_step_fits(system, dt):
     would blow up, so it is a bad option value (KnitError, exit 2)."""
     from solvers.stability import stable_step
 
-    from .options import KnitError
+    from knitfem.errors import KnitError
 
     h = stable_step(system)
     if dt > h:
@@ -513,7 +513,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
 
     from solvers.integrators import SimulationError
 
-    from .simulation import Simulation
+    from knitfem.run.simulation import Simulation
 
     start = time.perf_counter()
     with PETSc.Log.Stage("Static solve"):
@@ -537,7 +537,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     sim.write_summary(rec, "completed")
     P, _ = sim.geometry()
     if comm.rank == 0 and out:
-        from . import io
+        from knitfem import io
 
         io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
                              system.fabric.radius)
@@ -557,8 +557,8 @@ def fitting_metrics(fabric, P, nq=4):
     between different yarns over 2r (penetration when < 1) and the largest
     contact residual max |g| (``constraints.Contacts``) over r.
     """
-    from . import constraints as cons
-    from .yarn import YarnElements
+    from knitfem.contact import constraints as cons
+    from knitfem.yarn.elements import YarnElements
 
     el = YarnElements(fabric.X.reshape(-1, 3), fabric.connectivity(0, fabric.nyarn),
                       1.0, 1.0, 0.0, nq=nq)
@@ -576,8 +576,8 @@ def fitting_metrics(fabric, P, nq=4):
 
 def deform(comm):
     """Move the bounding volume's control points; rebuild the yarns through Γ."""
-    from . import io
-    from .volume import DEFAULT_AMOUNTS, MODES, BoundingVolume
+    from knitfem import io
+    from knitfem.lod.volume import DEFAULT_AMOUNTS, MODES, BoundingVolume
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts, 15, 30)

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["BoundingVolume", "DEFAULT_AMOUNTS", "MODES"]
 

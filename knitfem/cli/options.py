@@ -15,15 +15,12 @@ import difflib
 import numpy as np
 from petsc4py import PETSc
 
+from knitfem.errors import KnitError
 from solvers.libpetsc import Int, library
 
 __all__ = ["KnitError", "KnitOptions", "unused_options"]
 
 OURS = ("knit_", "bench_")
-
-
-class KnitError(Exception):
-    """Bad input: the message is one line saying what is wrong and what to do."""
 
 
 class KnitOptions:

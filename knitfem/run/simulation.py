@@ -34,8 +34,11 @@ from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
 from solvers.saddle import WORKSPACE_RAISED
 
-from . import bspline, interrupts, io, output
-from .painter import Painter
+from knitfem.yarn import bspline
+from knitfem.run import interrupts
+from knitfem import io
+from knitfem.run import output
+from knitfem.run.painter import Painter
 
 __all__ = ["Simulation", "SimulationError"]
 
@@ -89,7 +92,7 @@ class Simulation:
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.energy_growth, self.stall_steps = energy_growth, stall_steps
         self.verbose, self.view, self.animation = verbose, view, animation
-        self.adapt = adapt          # called after every step (knitfem.adapt)
+        self.adapt = adapt          # called after every step (knitfem.lod.adapt)
         self.x, self.v = system.start_state(), system.start_state()
         self.v.zeroEntries()
         self.t, self.step_count = 0.0, 0
@@ -297,7 +300,7 @@ class Simulation:
         its frames up to the checkpoint and goes on; elsewhere a new series
         notes where it continues from.
         """
-        from .options import KnitError
+        from knitfem.errors import KnitError
 
         mine = self.problem
         err = ckpt = None

@@ -45,7 +45,7 @@ Everything is vectorised over elements × quadrature points; no PETSc here.
 
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["YarnElements", "chain_rule", "stretch_terms", "bend_terms"]
 

@@ -45,7 +45,7 @@ Bending stays the yarn curve's own, E_b(Γα).
 import numpy as np
 from scipy import sparse
 
-from .pattern import SEGMENTS_PER_STITCH
+from knitfem.knit.pattern import SEGMENTS_PER_STITCH
 
 __all__ = ["ShellStretch"]
 

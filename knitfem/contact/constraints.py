@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import bspline
+from knitfem.yarn import bspline
 
 __all__ = ["Contacts", "Holds", "point_rows", "contacts", "fixed_points", "build"]
 

@@ -1,0 +1,1 @@
+"""The ``knitfem`` command: its commands, the -knit_ options and the scenes."""
