@@ -43,9 +43,10 @@ import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 
 from knitfem.cli.commands import (build_system, jersey_from_options,  # noqa: E402
-                              material_from_options, pose_from_options)
+                                  material_from_options,
+                                  start_rotation_from_options)
 from knitfem.cli.options import KnitError, KnitOptions  # noqa: E402
-from knitfem.cli.scenes import make_fabric  # noqa: E402
+from knitfem.cli.scenes import SCENES, make_fabric  # noqa: E402
 from knitfem.run.simulation import Simulation  # noqa: E402
 from solvers.integrators import INTEGRATORS, SimulationError  # noqa: E402
 
@@ -190,9 +191,10 @@ def build(comm):
     integrator set-up). Collective.
     """
     opts = KnitOptions()
-    scene = opts.getChoice("scene", "hanging", ("hanging", "freefall"), "scene")
+    name = opts.getChoice("scene", "hanging", ("hanging", "freefall"), "scene")
     jersey = jersey_from_options(opts)
-    tilt, hold, turn = pose_from_options(opts)
+    params = SCENES[name].declare(opts, jersey)
+    turn = start_rotation_from_options(opts)
     material = material_from_options(opts)
     dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
     method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS), "integrator")
@@ -205,7 +207,7 @@ def build(comm):
         clock.append(time.perf_counter())
         return clock[-1] - clock[-2]
 
-    fabric = make_fabric(scene, jersey, tilt=tilt, hold=hold, start_rotation=turn)
+    fabric = make_fabric(name, jersey, turn, **params)
     t_fabric = lap()
     system = build_system(comm, opts, fabric, material)
     t_model = lap()

@@ -144,8 +144,8 @@ def pulled_case(comm, options, t_end):
 
     from knitfem.lod.adapt import adaptation_from_options
     from knitfem.cli.commands import (build_system, jersey_from_options,
-                                  material_from_options, pull_from_options)
-    from knitfem.cli.scenes import make_fabric
+                                      material_from_options)
+    from knitfem.cli.scenes import Pulled
     from knitfem.run.simulation import Simulation
     from solvers.integrators import INTEGRATORS, SimulationError
 
@@ -156,7 +156,7 @@ def pulled_case(comm, options, t_end):
             comm.barrier()
             start = time.perf_counter()
             jersey = jersey_from_options(opts)
-            fabric = make_fabric("pulled", jersey, pull=pull_from_options(opts, jersey))
+            fabric = Pulled.from_options(opts, jersey).fabric(jersey)
             system = build_system(comm, opts, fabric, material_from_options(opts))
             dt = opts.getReal("dt", 1e-2, "time step [s]", positive=True)
             method = opts.getChoice("integrator", "implicit", tuple(INTEGRATORS),

@@ -93,7 +93,7 @@ def catenary_sag(length, span):
 
 def test_catenary_settles_to_analytic_sag():
     L, S = 0.1, 0.08
-    fab = make_fabric("catenary", length=L, span=S, nseg=40)
+    fab = make_fabric("catenary", length=L, span=S, segments=40)
     model = FullModel(SELF, fab, Material(EA=1e3, EI=1e-10, damping=20.0))
     # a string (EI ≈ 0): at 1e-2 s steps Newton wanders between the hinge
     # mechanism's equilibria and lands on another one, depending on round-off;
@@ -111,7 +111,7 @@ def test_catenary_settles_to_analytic_sag():
 
 def test_cantilever_small_deflection_tip():
     L, EI, rho, g = 0.1, 1e-4, 3e-5, 9.81
-    fab = make_fabric("cantilever", length=L, nseg=20)
+    fab = make_fabric("cantilever", length=L, segments=20)
     model = FullModel(SELF, fab, Material(rho=rho, EA=1e3, EI=EI, gravity=g))
     x = model.rest_state()
     StaticSolver(model, steps=1).solve(x)
@@ -122,7 +122,7 @@ def test_cantilever_small_deflection_tip():
 
 
 def test_symplectic_energy_drift_bounded():
-    fab = make_fabric("catenary", length=0.05, span=0.04, nseg=8)
+    fab = make_fabric("catenary", length=0.05, span=0.04, segments=8)
     fab.fixed = (np.zeros(1, int), np.zeros(1))        # a pendulum: one end pinned
     mat = Material(EA=0.5, EI=1e-7, gravity=9.81)
     model = FullModel(SELF, fab, mat)

@@ -88,7 +88,7 @@ def test_holds():
     with pytest.raises(ValueError, match="use one of top, side, corner"):
         jersey_fabric(j, hold="bottom")
     # the scene keeps the holds of the rest where a turned start puts them
-    fab = make_fabric("hanging", j, hold="corner", start_rotation=(0, 0, 30))
+    fab = make_fabric("hanging", j, hold="corner", tilt=0.0, start_rotation=(0, 0, 30))
     assert np.allclose(fab.start_points(), fab.turn(fab.X))
 
 

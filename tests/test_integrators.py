@@ -16,7 +16,7 @@ SELF = PETSc.COMM_SELF
 
 def pendulum(damping=0.0, EA=0.5, EI=1e-7):
     """A yarn pinned at one end, starting as an arc: it swings under gravity."""
-    fab = make_fabric("catenary", length=0.05, span=0.04, nseg=8)
+    fab = make_fabric("catenary", length=0.05, span=0.04, segments=8)
     fab.fixed = (np.zeros(1, int), np.zeros(1))
     return FullModel(SELF, fab, Material(EA=EA, EI=EI, gravity=9.81,
                                          damping=damping))
@@ -171,7 +171,7 @@ def test_newton_matrix_is_the_derivative_of_the_residual(method):
     at a generic state of a hanging jersey after two steps."""
     from knitfem.knit.pattern import Jersey
 
-    model = FullModel(SELF, make_fabric("hanging", Jersey(3, 3)), Material(damping=2.0))
+    model = FullModel(SELF, make_fabric("hanging", Jersey(3, 3), tilt=0.0), Material(damping=2.0))
     integ = method(model, 1e-2)
     x, v = model.start_state(), model.start_state()
     v.zeroEntries()

@@ -254,7 +254,7 @@ def test_adaptive_run_writes_indicator(tmp_path, sampling):
     (["-knit_model", "reduced", "-knit_adapt"], "-knit_adapt needs -knit_model mixed"),
     (["-knit_model", "mixed", "-knit_full_region", "0:9,1:2"], "outside"),
     (["-knit_model", "mixed", "-knit_full_regions", "/nonexistent"], "No such file"),
-    (["-knit_scene", "pulled", "-knit_pull_force", "1,2"], "three numbers"),
+    (["-knit_scene", "pulled", "-knit_pull_force", "1,2"], "3 comma-separated"),
 ])
 def test_bad_input_is_one_line(args, message, tmp_path):
     p = knitfem_run("-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.01",

@@ -15,7 +15,7 @@ SELF = PETSc.COMM_SELF
 
 
 def free_yarn():
-    fab = make_fabric("catenary", length=0.05, span=0.04, nseg=8)
+    fab = make_fabric("catenary", length=0.05, span=0.04, segments=8)
     fab.fixed = (np.zeros(0, int), np.zeros(0))
     return FullModel(SELF, fab, Material(EA=0.5, EI=1e-7))
 

@@ -48,7 +48,7 @@ def centreline(P, n=2001):
 
 
 def cantilever(EI, rho=1e-3, nseg=40):
-    return static(make_fabric("cantilever", length=L, nseg=nseg),
+    return static(make_fabric("cantilever", length=L, segments=nseg),
                   Material(rho=rho, EA=1e4, EI=EI, gravity=G))
 
 
@@ -59,7 +59,7 @@ def catenary_sag(length, span):
 
 def catenary():
     """The issue's catenary: L = 0.1, span 0.08, EI 1e-10, EA 1e4, ρ 1e-3."""
-    return static(make_fabric("catenary", length=L, span=0.08, nseg=40),
+    return static(make_fabric("catenary", length=L, span=0.08, segments=40),
                   Material(rho=1e-3, EA=1e4, EI=1e-10, gravity=G))
 
 
@@ -170,7 +170,7 @@ def test_failed_linear_solve_is_named():
     for k, v in given.items():
         opts.setValue(k, v)
     try:
-        model = FullModel(SELF, make_fabric("cantilever", length=L, nseg=10),
+        model = FullModel(SELF, make_fabric("cantilever", length=L, segments=10),
                           Material(rho=1e-3, EA=1e4, EI=1.962e-4))
         with pytest.raises(SimulationError, match=r"DIVERGED_MAX_IT, 2 iterations"):
             StaticSolver(model).solve(model.rest_state())

@@ -25,24 +25,6 @@ def jersey_from_options(opts, rows=7, cols=7):
     return Jersey(r, c, radius, LoopShape(), knit)
 
 
-def pull_from_options(opts, jersey):
-    """(stitch, force) of the pulled scene: -knit_pull_stitch c,r and
-    -knit_pull_force fx,fy,fz [N]."""
-    stitch = opts.getInts("pull_stitch", (jersey.cols // 2, 0),
-                          "pulled scene: stitch (column, course) whose loop head "
-                          "is pulled", 2, 0)
-    raw = opts.getString("pull_force", "0,-0.005,0", "pulled scene: point force "
-                         "fx,fy,fz [N]")
-    try:
-        force = [float(v) for v in raw.split(",")]
-    except ValueError:
-        force = []
-    if len(force) != 3 or not np.all(np.isfinite(force)):
-        raise KnitError(f"-knit_pull_force {raw!r}: expected three numbers "
-                        "fx,fy,fz in newtons")
-    return stitch, force
-
-
 def output_dir(path):
     """Create the output directory (-o DIR) on rank 0."""
     if PETSc.COMM_WORLD.rank == 0:
@@ -135,27 +117,12 @@ def pattern(comm):
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
 
 
-AIR_DRAG = {"hanging": 1.4}
-"""Default c_d [1/s] by scene: air drag on a swinging knit, linearised,
-c_d = ½ ρ_air C_D U / ρ_A = ½ · 1.2 kg/m³ · 1.2 · 0.5 m/s / 0.26 kg/m² (flat
-plate normal to the flow, C_D ≈ 1.2, Hoerner, *Fluid-Dynamic Drag*, 1965;
-U the swatch's swinging speed; ρ_A the 7×7 jersey's areal density). The
-scenes with analytic references (free fall, catenary, cantilever) are in
-vacuum."""
-
-
-FRICTION = {"drape": 0.5}
-"""Default Coulomb μ between yarns and bodies by scene: a middling value
-for fabric on a body; without friction the swatch balanced on the sphere
-slides off it."""
-
-
 def material_from_options(opts, scene=None):
     """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping
-    (default: the scene's air drag)."""
+    (default: the air drag of ``scene``, a ``Scene`` class)."""
     from knitfem.model.full import Material
 
-    d = Material(damping=AIR_DRAG.get(scene, 0.0))
+    d = Material(damping=scene.air_drag if scene else 0.0)
     return Material(
         rho=opts.getReal("rho", d.rho, "linear density [kg/m]", positive=True),
         EA=opts.getReal("EA", d.EA, "axial stiffness EA [N]", positive=True),
@@ -216,39 +183,11 @@ PETSc options reach each solver through its prefix, named by the model:
 (-knit_static: -static_snes_monitor); -log_view, -options_file FILE. Example:
   knitfem run -knit_scene cantilever -knit_static -static_snes_monitor"""
 
-VIEWS = {"hanging": "three_quarter", "pulled": "front", "freefall": "oblique",
-         "drape": "three_quarter",
-         "catenary": "front", "cantilever": "front"}
-
-
-def scene_problem(scene, jersey, tilt, length, span, nseg, material, nq, lod,
-                  hold="top", turn=(0, 0, 0)):
-    """The options that define a scene's problem (a checkpoint's fingerprint)."""
-    if scene in ("catenary", "cantilever"):
-        shape = dict(length=length, segments=nseg,
-                     **(dict(span=span) if scene == "catenary" else {}))
-    else:
-        shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit,
-                     **(dict(tilt=tilt, hold=hold) if scene == "hanging" else {}))
-    if any(turn):
-        shape["start_rotation"] = list(turn)
-    return dict(scene=scene, radius=jersey.radius, **shape, rho=material.rho,
-                EA=material.EA, EI=material.EI, gravity=material.gravity,
-                damping=material.damping, quadrature=nq, lod=list(lod) if lod else None)
-
-
-def pose_from_options(opts):
-    """(tilt, hold, start rotation) of a scene's fabric from -knit_tilt,
-    -knit_hold and -knit_start_rotation."""
-    tilt = opts.getReal("tilt", 90.0, "start turned by this angle [deg] about the "
-                        "held course (hanging: 90 horizontal, 0 hanging)")
-    hold = opts.getChoice("hold", "top", HOLDS, "hanging scene: held by the loop "
-                          "heads of the top course, the first stitch of every "
-                          "course, or the top course's first stitch")
-    turn = opts.getReals("start_rotation", (0.0, 0.0, 0.0), "start the fabric "
+def start_rotation_from_options(opts):
+    """-knit_start_rotation ax,ay,az [deg] (``scenes.make_fabric``)."""
+    return opts.getReals("start_rotation", (0.0, 0.0, 0.0), "start the fabric "
                          "rigidly turned from its rest by ax,ay,az [deg] about x, "
                          "then y, then z (through its centroid)", 3)
-    return tilt, hold, turn
 
 
 def colliders_from_options(opts):
@@ -350,25 +289,22 @@ def run(comm):
     from knitfem.run.simulation import Simulation
 
     opts = KnitOptions()
-    scene = opts.getChoice("scene", "hanging", SCENES, "scene")
+    name = opts.getChoice("scene", "hanging", tuple(SCENES), "scene")
     jersey = jersey_from_options(opts)
-    length = opts.getReal("length", 0.1, "yarn length [m] (catenary, cantilever)",
-                          positive=True)
-    span = opts.getReal("span", 0.08, "distance between the pins [m] (catenary)",
-                        positive=True)
-    nseg = opts.getInt("segments", 40, "segments of the single yarn (catenary, "
-                       "cantilever)", 1)
-    tilt, hold, turn = pose_from_options(opts)
-    pull = pull_from_options(opts, jersey)
+    for cls in SCENES.values():                  # every scene's options declared
+        params = cls.declare(opts, jersey)
+        if cls.name == name:
+            scene = cls(**params)
+    turn = start_rotation_from_options(opts)
     bodies = colliders_from_options(opts)
-    friction = opts.getReal("friction", FRICTION.get(scene, 0.0), "Coulomb friction "
+    friction = opts.getReal("friction", scene.friction, "Coulomb friction "
                             "coefficient between the yarns and the bodies (implicit "
                             "integrators; drape: 0.5, others 0)", nonnegative=True)
-    material = material_from_options(opts, scene)
+    material = material_from_options(opts, type(scene))
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
     kind = model_options(opts)[0]
     make_integrator = integrator_from_options(
-        opts, settle=kind == "reduced" and (bool(bodies) or scene == "drape"))
+        opts, settle=kind == "reduced" and (bool(bodies) or name == "drape"))
     unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
                             "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
@@ -409,7 +345,7 @@ def run(comm):
             raise KnitError(f"-knit_restart_change {c!r}: a restart can change only "
                             + ", ".join(CHANGEABLE))
     adapt_options(opts)
-    path = opts.getOutput(f"out/{scene}")
+    path = opts.getOutput(f"out/{name}", shown="out/SCENE")
     if opts.finish("knitfem run", RUN_HELP_FOOTER):
         return
     out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
@@ -421,8 +357,7 @@ def run(comm):
         if drawn and comm.rank == 0:     # its matplotlib import overlaps the set-up
             painter = Painter()
         try:
-            fabric = make_fabric(scene, jersey, length, span, nseg, jersey.radius,
-                                 tilt, pull, hold, turn)
+            fabric = make_fabric(name, jersey, turn, **scene.params)
         except ValueError as err:
             raise KnitError(str(err)) from None
         fabric.bodies = fabric.bodies + bodies
@@ -431,7 +366,7 @@ def run(comm):
         n, k = system.M.getSize()[0], system.C.getSize()[0]
         from knitfem.lod.reduced import sampling_note
 
-        PETSc.Sys.Print(f"knitfem run: {scene}, {system.kind} model"
+        PETSc.Sys.Print(f"knitfem run: {name}, {system.kind} model"
                         f"{sampling_note(system)}, {n} coordinates "
                         f"+ {k} constraints (contacts, fixed points) = {n + k} "
                         f"unknowns, {comm.size} rank(s)")
@@ -443,18 +378,22 @@ def run(comm):
                 explicit_step_fits(system, integrator.dt)
             adapt = adaptation_from_options(opts, system)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
-        problem = scene_problem(scene, jersey, tilt, length, span, nseg, material,
-                                PETSc.Options().getInt("knit_quadrature", 4),
-                                lod and (lod.n1, lod.n2), hold, turn)
+        problem = dict(scene.problem(jersey), rho=material.rho, EA=material.EA,
+                       EI=material.EI, gravity=material.gravity,
+                       damping=material.damping,
+                       quadrature=PETSc.Options().getInt("knit_quadrature", 4),
+                       lod=[lod.n1, lod.n2] if lod else None)
+        if any(turn):
+            problem["start_rotation"] = list(turn)
         if fabric.bodies:
             problem["bodies"] = [b.describe() for b in fabric.bodies]
             problem["friction"] = friction
         if getattr(system, "shell", None) is not None:
             problem["stretch"] = "shell"
-        sim = Simulation(system, integrator, out=out, scene=scene,
+        sim = Simulation(system, integrator, out=out, scene=name,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,
-                         checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
+                         checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
                          painter=painter)
         if restart:
@@ -518,7 +457,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     start = time.perf_counter()
     with PETSc.Log.Stage("Static solve"):
         solver = StaticSolver(system, load_steps)
-        sim = Simulation(system, solver, out=out, scene=scene, verbose=False)
+        sim = Simulation(system, solver, out=out, scene=scene.name, verbose=False)
         out.rank0(out.remove_pictures)
         out = out.path
         _, pts0 = sim.geometry()
@@ -539,11 +478,12 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
     if comm.rank == 0 and out:
         from knitfem import io
 
-        io.write_centrelines(os.path.join(out, f"{scene}_static.vtu"), P,
+        io.write_centrelines(os.path.join(out, f"{scene.name}_static.vtu"), P,
                              system.fabric.radius)
-        io.draw(os.path.join(out, f"{scene}_static.png"), P, system.fabric.radius,
-                title=f"{scene}, static equilibrium ({system.kind} model)",
-                view=VIEWS[scene] if system.fabric.bodies else "front",
+        io.draw(os.path.join(out, f"{scene.name}_static.png"), P,
+                system.fabric.radius,
+                title=f"{scene.name}, static equilibrium ({system.kind} model)",
+                view=scene.view if system.fabric.bodies else "front",
                 bodies=system.fabric.bodies)
     PETSc.Sys.Print(f"static equilibrium in {its} Newton iterations; tip "
                     f"{np.round(rec['tip'], 6).tolist()}, lowest point dropped "

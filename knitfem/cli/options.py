@@ -35,9 +35,12 @@ class KnitOptions:
 
     def __init__(self, prefix="knit_"):
         self.db, self.prefix, self.lines = PETSc.Options(prefix), prefix, []
+        self.names = set()
 
     def _raw(self, name, default, text):
-        self.lines.append(f"  -{self.prefix}{name} <{default}>: {text}")
+        if name not in self.names:                  # shared by several scenes
+            self.names.add(name)
+            self.lines.append(f"  -{self.prefix}{name} <{default}>: {text}")
         KnitOptions.declared.add(self.prefix + name)
         if not self.db.hasName(name):
             return None
@@ -132,9 +135,10 @@ class KnitOptions:
         raw = self._raw(name, default, text)
         return default if raw is None else raw
 
-    def getOutput(self, default):
-        """The output directory, ``-o DIR`` (no prefix)."""
-        self.lines.append(f"  -o <{default}>: output directory")
+    def getOutput(self, default, shown=None):
+        """The output directory, ``-o DIR`` (no prefix); ``shown``: the
+        default as -help gives it, where it depends on other options."""
+        self.lines.append(f"  -o <{shown or default}>: output directory")
         KnitOptions.declared.add("o")
         return PETSc.Options().getString("o", default)
 

@@ -31,11 +31,9 @@ import numpy as np
 from knitfem.yarn import bspline
 from knitfem.contact.colliders import Sphere
 from knitfem.knit.fabric import Fabric
-from knitfem.knit.pattern import jersey_fabric
+from knitfem.knit.pattern import Jersey, jersey_fabric
 
-__all__ = ["SCENES", "make_fabric", "rotation", "straight_yarn", "arc_yarn"]
-
-SCENES = ("hanging", "pulled", "freefall", "drape", "catenary", "cantilever")
+__all__ = ["SCENES", "Scene", "make_fabric", "rotation", "straight_yarn", "arc_yarn"]
 
 
 def interpolating_control_points(points):
@@ -129,36 +127,188 @@ def pulled(jersey, stitch, force):
     return fab
 
 
-def make_fabric(scene, jersey=None, length=0.1, span=0.08, nseg=40, radius=5e-4,
-                tilt=0.0, pull=None, hold="top", start_rotation=(0, 0, 0)):
-    """The ``Fabric`` of a scene; ``pull`` = (stitch, force) for "pulled",
-    ``hold`` for "hanging"; started turned by ``start_rotation`` (degrees
-    about x, then y, then z, about the fabric's centroid)."""
-    fabric = scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold)
+class Scene:
+    """A built-in scene: the fabric it makes, its defaults and its picture.
+
+    A scene is made of its parameters (``params``, the keyword arguments of
+    its constructor, which are also its options without the ``knit_``
+    prefix); ``fabric(jersey)`` builds the fabric at rest, ``problem(jersey)``
+    describes it (a checkpoint's fingerprint). Class attributes: ``view``,
+    the picture's camera; ``air_drag``, the default c_d [1/s]; ``friction``,
+    the default Coulomb μ against bodies; ``knitted``, whether a jersey
+    (-knit_rows, -knit_cols, -knit_shape) is its fabric.
+    """
+
+    name = ""
+    view = "front"
+    air_drag = 0.0
+    friction = 0.0
+    knitted = True
+
+    def __init__(self, **params):
+        self.params = params
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        """This scene's own options (declared on ``opts``), as its params."""
+        return {}
+
+    @classmethod
+    def from_options(cls, opts, jersey):
+        return cls(**cls.declare(opts, jersey))
+
+    def fabric(self, jersey):
+        raise NotImplementedError
+
+    def problem(self, jersey):
+        if not self.knitted:
+            shape = {}
+        else:
+            shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit)
+        return dict(scene=self.name, radius=jersey.radius, **shape, **self.params)
+
+
+class Hanging(Scene):
+    """r × nc jersey held by ``hold`` and started turned by ``tilt``."""
+
+    name, view = "hanging", "three_quarter"
+    air_drag = 1.4
+    """Air drag on a swinging knit, linearised: c_d = ½ ρ_air C_D U / ρ_A =
+    ½ · 1.2 kg/m³ · 1.2 · 0.5 m/s / 0.26 kg/m² (flat plate normal to the
+    flow, C_D ≈ 1.2, Hoerner, *Fluid-Dynamic Drag*, 1965; U the swatch's
+    swinging speed; ρ_A the 7×7 jersey's areal density)."""
+
+    def __init__(self, tilt=90.0, hold="top"):
+        super().__init__(tilt=tilt, hold=hold)
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        from knitfem.knit.pattern import HOLDS
+
+        return dict(
+            tilt=opts.getReal("tilt", 90.0, "hanging: start turned by this angle "
+                              "[deg] about the held course (90 horizontal, 0 "
+                              "hanging)"),
+            hold=opts.getChoice("hold", "top", HOLDS, "hanging: held by the loop "
+                                "heads of the top course, the first stitch of "
+                                "every course, or the top course's first stitch"))
+
+    def fabric(self, jersey):
+        return tilted(jersey_fabric(jersey, hold=self.params["hold"]),
+                      self.params["tilt"])
+
+
+class Pulled(Scene):
+    """The jersey hanging from its top course, pulled at one loop head."""
+
+    name = "pulled"
+
+    def __init__(self, stitch=(0, 0), force=(0.0, -0.005, 0.0)):
+        super().__init__(stitch=tuple(stitch), force=tuple(force))
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        return dict(
+            stitch=opts.getInts("pull_stitch", (jersey.cols // 2, 0), "pulled: "
+                                "stitch (column, course) whose loop head is "
+                                "pulled", 2, 0),
+            force=opts.getReals("pull_force", (0.0, -0.005, 0.0), "pulled: point "
+                                "force fx,fy,fz [N]", 3))
+
+    def fabric(self, jersey):
+        return pulled(jersey, self.params["stitch"], self.params["force"])
+
+    def problem(self, jersey):
+        rec = super().problem(jersey)
+        return {k: v for k, v in rec.items() if k not in ("stitch", "force")}
+
+
+class Freefall(Scene):
+    """The free jersey (no world constraints)."""
+
+    name, view = "freefall", "oblique"
+
+    def fabric(self, jersey):
+        return jersey_fabric(jersey)
+
+
+class Drape(Scene):
+    """The free jersey laid flat above a sphere, on which it falls."""
+
+    name, view = "drape", "three_quarter"
+    friction = 0.5
+    """A middling μ for fabric on a body; without friction the swatch
+    balanced on the sphere slides off it."""
+
+    def fabric(self, jersey):
+        if jersey.closed:
+            raise ValueError("-knit_scene drape lays a flat swatch on a sphere: use "
+                             "-knit_shape flat (a tube: the hanging or freefall "
+                             "scene with -knit_collider)")
+        return drape(jersey)
+
+
+def single_yarn_options(opts):
+    """-knit_length and -knit_segments of the one-yarn scenes."""
+    return dict(
+        length=opts.getReal("length", 0.1, "yarn length [m] (catenary, "
+                            "cantilever)", positive=True),
+        segments=opts.getInt("segments", 40, "segments of the single yarn "
+                             "(catenary, cantilever)", 1))
+
+
+class Catenary(Scene):
+    """One yarn of length L pinned at both ends, at rest an arc (in vacuum)."""
+
+    name, knitted = "catenary", False
+
+    def __init__(self, length=0.1, span=0.08, segments=40):
+        super().__init__(length=length, segments=segments, span=span)
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        return dict(single_yarn_options(opts),
+                    span=opts.getReal("span", 0.08, "distance between the pins "
+                                      "[m] (catenary)", positive=True))
+
+    def fabric(self, jersey):
+        p = self.params
+        X = arc_yarn(p["length"], p["span"], p["segments"])[None]
+        return Fabric(X, jersey.radius,
+                      fixed=(np.zeros(2, int), np.array([0.0, p["segments"]])))
+
+
+class Cantilever(Scene):
+    """One straight yarn along +x clamped at the origin (in vacuum)."""
+
+    name, knitted = "cantilever", False
+
+    def __init__(self, length=0.1, segments=40):
+        super().__init__(length=length, segments=segments)
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        return single_yarn_options(opts)
+
+    def fabric(self, jersey):
+        X = straight_yarn(self.params["length"], self.params["segments"])[None]
+        root = (np.zeros(1, int), np.zeros(1))
+        return Fabric(X, jersey.radius, fixed=root, clamped=root)
+
+
+SCENES = {cls.name: cls for cls in (Hanging, Pulled, Freefall, Drape, Catenary,
+                                    Cantilever)}
+"""The built-in scenes by name (-knit_scene)."""
+
+
+def make_fabric(scene, jersey=None, start_rotation=(0, 0, 0), **params):
+    """The ``Fabric`` of the scene named ``scene`` with ``params`` (see its
+    class), started turned by ``start_rotation`` (degrees about x, then y,
+    then z, about the fabric's centroid); ``jersey`` a ``Jersey`` (its radius
+    is the single yarn's too)."""
+    if scene not in SCENES:
+        raise ValueError(f"unknown scene {scene!r}: use one of {', '.join(SCENES)}")
+    fabric = SCENES[scene](**params).fabric(jersey or Jersey(7, 7))
     if np.any(start_rotation):
         fabric = fabric.started_turned(rotation(start_rotation))
     return fabric
-
-
-def scene_fabric(scene, jersey, length, span, nseg, radius, tilt, pull, hold):
-    """The ``Fabric`` of a scene at rest (``make_fabric``)."""
-    if scene == "hanging":
-        return tilted(jersey_fabric(jersey, hold=hold), tilt)
-    if scene == "pulled":
-        return pulled(jersey, *pull)
-    if scene == "freefall":
-        return jersey_fabric(jersey)
-    if scene == "drape":
-        if jersey.closed:
-            raise ValueError("-knit_scene drape lays a flat swatch on a sphere: use "
-                             "-knit_shape flat (a tube: the hanging or freefall scene "
-                             "with -knit_collider)")
-        return drape(jersey)
-    if scene == "catenary":
-        X = arc_yarn(length, span, nseg)[None]
-        return Fabric(X, radius, fixed=(np.zeros(2, int), np.array([0.0, nseg])))
-    if scene == "cantilever":
-        X = straight_yarn(length, nseg)[None]
-        root = (np.zeros(1, int), np.zeros(1))
-        return Fabric(X, radius, fixed=root, clamped=root)
-    raise ValueError(f"unknown scene {scene!r}: use one of {', '.join(SCENES)}")
