@@ -348,3 +348,13 @@ def test_shell_stretch_beyond_the_dense_tangent_is_a_usage_error(tmp_path):
                 "-knit_lod", "11,11", "-knit_rows", "3", "-knit_cols", "3",
                 "-o", str(tmp_path))
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "-knit_lod" in p.stderr
+
+
+def test_declarations_are_what_help_lists():
+    """``declarations(command)`` gives the options -help prints, in order."""
+    from knitfem.cli.options import declarations
+
+    for command in ("dofs", "pattern", "run", "deform"):
+        listed = [line.split()[0] for line in knitfem(command, "-help").stdout
+                  .splitlines() if line.startswith("  -")]
+        assert [f"-{d.name}" for d in declarations(command)] == listed

@@ -527,7 +527,7 @@ def deform(comm):
                           "by default " + ", ".join(f"{m} {a:g}" for m, a in
                                                     DEFAULT_AMOUNTS.items()))
     lod = opts.getInts("lod", (5, 5), "bounding-volume control points n1,n2", 2, 4)
-    out = opts.getOutput(f"out/deform_{mode}")
+    out = opts.getOutput(f"out/deform_{mode}", shown="out/deform_MODE")
     if opts.finish("knitfem deform"):
         return
     output_dir(out)

@@ -11,6 +11,7 @@ lists the PETSc options nothing read, for a warning at the end.
 
 import ctypes
 import difflib
+from typing import NamedTuple
 
 import numpy as np
 from petsc4py import PETSc
@@ -18,29 +19,45 @@ from petsc4py import PETSc
 from knitfem.errors import KnitError
 from solvers.libpetsc import Int, library
 
-__all__ = ["KnitError", "KnitOptions", "unused_options"]
+__all__ = ["KnitError", "KnitOptions", "Declaration", "declarations",
+           "unused_options"]
 
 OURS = ("knit_", "bench_")
+
+
+class Declaration(NamedTuple):
+    """One option as a command declares it: ``-{name} <{default}>: {text}``."""
+
+    name: str
+    default: str
+    text: str
+
+    def __str__(self):
+        return f"  -{self.name} <{self.default}>: {self.text}"
 
 
 class KnitOptions:
     """Our -knit_ options, each with a default and a help line.
 
     ``declared`` holds every option name any instance declared in this
-    process; ``help`` is set by the command line (``knitfem CMD -help``).
+    process; ``help`` is set by the command line (``knitfem CMD -help``);
+    ``catalogue``, a list, collects a command's declarations instead of
+    printing them under help (``declarations``).
     """
 
     declared = set()
     help = False
+    catalogue = None
 
     def __init__(self, prefix="knit_"):
-        self.db, self.prefix, self.lines = PETSc.Options(prefix), prefix, []
-        self.names = set()
+        self.db, self.prefix, self.entries = PETSc.Options(prefix), prefix, []
+
+    def _declare(self, name, default, text):
+        if all(e.name != name for e in self.entries):   # shared by several scenes
+            self.entries.append(Declaration(name, str(default), text))
 
     def _raw(self, name, default, text):
-        if name not in self.names:                  # shared by several scenes
-            self.names.add(name)
-            self.lines.append(f"  -{self.prefix}{name} <{default}>: {text}")
+        self._declare(self.prefix + name, default, text)
         KnitOptions.declared.add(self.prefix + name)
         if not self.db.hasName(name):
             return None
@@ -138,14 +155,18 @@ class KnitOptions:
     def getOutput(self, default, shown=None):
         """The output directory, ``-o DIR`` (no prefix); ``shown``: the
         default as -help gives it, where it depends on other options."""
-        self.lines.append(f"  -o <{shown or default}>: output directory")
+        self._declare("o", shown or default, "output directory")
         KnitOptions.declared.add("o")
         return PETSc.Options().getString("o", default)
 
     def printHelp(self, title):
-        """Under -help, print the declared options (collective). True if it did."""
+        """Under -help, print the declared options (collective), or add them
+        to ``catalogue``. True if it did."""
+        if KnitOptions.catalogue is not None:
+            KnitOptions.catalogue.extend(self.entries)
+            return True
         if KnitOptions.help or PETSc.Options().hasName("help"):
-            PETSc.Sys.Print(f"{title} options:\n" + "\n".join(self.lines))
+            PETSc.Sys.Print(f"{title} options:\n" + "\n".join(map(str, self.entries)))
             return True
         return False
 
@@ -162,7 +183,7 @@ class KnitOptions:
             raise KnitError(f"unknown option -{name}{hint} ({title} -help lists "
                             "the options)")
         if self.printHelp(title):
-            if footer:
+            if footer and KnitOptions.catalogue is None:
                 PETSc.Sys.Print(footer)
             return True
         return False
@@ -184,3 +205,17 @@ def unused_options():
     left = [names[i].decode() for i in range(n.value)]
     restore(*args)
     return left
+
+
+def declarations(command):
+    """The options ``knitfem <command>`` declares, in order (a list of
+    ``Declaration``), as its -help lists them; the command stops before it
+    runs. Collective; PETSc must be initialised."""
+    from knitfem.cli import commands
+
+    KnitOptions.catalogue = []
+    try:
+        getattr(commands, command)(PETSc.COMM_WORLD)
+        return KnitOptions.catalogue
+    finally:
+        KnitOptions.catalogue = None
