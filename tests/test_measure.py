@@ -1,0 +1,61 @@
+"""Textile measures (``knitfem.knit.measure``) on knits whose answer is known."""
+
+import numpy as np
+import pytest
+
+from knitfem.knit.measure import EDGES, curl, loop_length, munden, spacings
+from knitfem.knit.pattern import Jersey
+from knitfem.yarn import bspline
+
+
+def grid(rows, cols, cs=3e-3, ws=4e-3):
+    """Loop heads of a flat swatch in the x–y plane."""
+    r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    return np.stack([c * ws, r * cs, np.zeros_like(r, dtype=float)], axis=-1)
+
+
+def test_a_flat_grid_has_its_spacings_and_no_curl():
+    H = grid(8, 6)
+    assert spacings(H) == pytest.approx((3e-3, 4e-3), rel=1e-14)
+    edges = curl(H, back=(0, 0, 1), radius=5e-4)
+    assert all(edges[e]["side"] == "flat" for e in EDGES)
+
+
+def test_munden_constants_are_length_ratios():
+    assert munden(16.8e-3, 3e-3, 4.2e-3) == pytest.approx((5.6, 4.0, 22.4))
+
+
+def test_curl_sides_of_a_curled_jersey():
+    """Courses' ends rolled to the face (−z), first and last courses to the
+    back (+z): the sides, and the sign and angle of the offsets."""
+    H = grid(12, 12)
+    x = H[..., 0] - H[..., 0].mean()
+    y = H[..., 1] - H[..., 1].mean()
+    H[..., 2] = -30.0 * x**2 * (np.abs(x) > 0.012) + 40.0 * y**2 * (np.abs(y) > 0.009)
+    edges = curl(H, back=(0, 0, 1), radius=5e-4)
+    assert [edges[e]["side"] for e in EDGES] == ["back", "back", "face", "face"]
+    left = edges["left"]
+    expected = H[:, 0, 2].mean()         # the middle is flat: its plane is z = 0
+    assert left["offset_m"] == pytest.approx(expected, rel=1e-12)
+    assert left["angle_deg"] == pytest.approx(np.degrees(np.arctan2(expected, 0.022)),
+                                              rel=1e-12)
+    # the same swatch seen with its back to −z reads the same sides
+    turned = H * np.array([1.0, 1.0, -1.0])
+    assert curl(turned, back=(0, 0, -1), radius=5e-4)["top"]["side"] == "back"
+
+
+def test_template_jersey_dimensions():
+    """The default template: ℓ = 16.8 mm (a stitch's arc of the plain-knit
+    curve), course spacing w = 4.5 units, wale spacing 2π units, a unit
+    r/0.75 = 0.667 mm."""
+    j = Jersey(6, 6)
+    P = np.stack([j.control_points(f) for f in range(j.rows)])
+    s = np.linspace(0, j.nseg, 64 * j.nseg + 1)
+    pts = np.stack([bspline.curve_points(p, s) for p in P])
+    lengths = np.linalg.norm(np.diff(pts, axis=1), axis=-1).sum(axis=1)
+    ell = loop_length(lengths, np.full(j.rows, j.cols))
+    assert ell == pytest.approx(16.8e-3, rel=3e-3)        # 16.817 mm: 1.0e-3
+    heads = np.stack([bspline.curve_points(P[f], j.heads(f)) for f in range(j.rows)])
+    cs, ws = spacings(heads)
+    assert cs == pytest.approx(4.5 * j.scale, rel=1e-12)
+    assert ws == pytest.approx(2 * np.pi * j.scale, rel=1e-12)
