@@ -9,7 +9,7 @@ from petsc4py import PETSc
 from knitfem.cli.options import KnitError, KnitOptions
 from knitfem.knit.pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
-__all__ = ["dofs", "pattern", "run", "deform"]
+__all__ = ["dofs", "pattern", "relax", "run", "deform"]
 
 
 def jersey_from_options(opts, rows=7, cols=7):
@@ -23,6 +23,24 @@ def jersey_from_options(opts, rows=7, cols=7):
     if knit == "tube" and c < 3:
         raise KnitError(f"-knit_cols {c}: a tube needs at least 3 stitches around")
     return Jersey(r, c, radius, LoopShape(), knit)
+
+
+def rest_from_options(opts, jersey):
+    """-knit_rest: the relaxed knit (``knitfem relax``'s relaxed.h5) the
+    jersey's fabrics start from, or "template"; sets ``jersey.rest``."""
+    from knitfem.run.relax import RelaxedKnit
+
+    path = opts.getString("rest", "template", "the knit a scene starts from: "
+                          "FILE, the relaxed.h5 of knitfem relax (a naturally "
+                          "straight yarn in equilibrium), or template (the "
+                          "stress-free loops of the paper)")
+    if path != "template":
+        try:
+            jersey.rest = RelaxedKnit.load(path)
+            jersey.rest.check(jersey)
+        except ValueError as err:
+            raise KnitError(f"-knit_rest {path}: {err}") from None
+    return jersey
 
 
 def output_dir(path):
@@ -117,12 +135,113 @@ def pattern(comm):
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
 
 
-def material_from_options(opts, scene=None):
+def relax(comm):
+    """Relax a knit from its geometric template: a naturally straight yarn
+    bent into its loops, at equilibrium (``run.relax``)."""
+    import sys
+
+    from solvers.integrators import BackwardEuler, SimulationError
+    from solvers.stepping import StepControl
+
+    from knitfem import io
+    from knitfem.knit.pattern import jersey_fabric
+    from knitfem.model.full import FullModel
+    from knitfem.run.output import OutputDirectory
+    from knitfem.run.relax import (RelaxedKnit, knit_measures, loop_length,
+                                   natural_fabric, yarn_lengths)
+    from knitfem.run.simulation import Simulation
+
+    opts = KnitOptions()
+    jersey = jersey_from_options(opts)
+    template = jersey_fabric(jersey)
+    ell0 = loop_length(yarn_lengths(template.X, template.closed),
+                       np.full(template.nyarn, jersey.cols))
+    ell = opts.getReal("loop_length", float(f"{ell0:.4g}"), "yarn length a stitch "
+                       "[m] (default: the unscaled template's)", positive=True)
+    scale = opts.getReals("template_scale", (1.0, 1.0, 1.0), "start from the "
+                          "template scaled by sx,sy,sz along its courses, wales and "
+                          "thickness (the loop length stays -knit_loop_length's)", 3)
+    if min(scale) <= 0:
+        raise KnitError(f"-knit_template_scale {','.join(map(str, scale))}: "
+                        "expected three positive factors")
+    material = material_from_options(opts, gravity=0.0, damping=RELAX_DAMPING)
+    t_max = opts.getReal("t_end", 2.0, "longest relaxation [s] (it stops when the "
+                         "knit has come to rest)", positive=True)
+    rest = opts.getReal("rest_speed", 1e-5, "the knit is at rest when its RMS speed "
+                        "falls below this [m/s]", positive=True)
+    every = opts.getInt("output_every", 10, "steps between progress lines and "
+                        "frames of relaxed.xdmf", 1)
+    path = opts.getOutput("out/relax")
+    if opts.finish("knitfem relax"):
+        return
+    out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
+    try:
+        fabric = natural_fabric(jersey, template, ell, scale)
+        system = FullModel(comm, fabric, material)
+        PETSc.Sys.Print(f"knitfem relax: {jersey.rows}x{jersey.cols} {jersey.knit}, "
+                        f"loop length {1e3 * ell:.4g} mm, {system.M.getSize()[0]} "
+                        f"coordinates + {system.C.getSize()[0]} constraints")
+        control = StepControl(1e-3, adaptive=True, rtol=1e-3, atol=1e-5,
+                              dt_min=1e-9, dt_max=0.05)
+        mass = system.M.getRowSum().sum() / 3
+
+        def settled(m):
+            return np.sqrt(2 * m["kinetic_energy"] / mass) < rest
+
+        sim = Simulation(system, BackwardEuler(system, control.dt, control),
+                         out=out, scene="relax", output_every=every,
+                         series="relaxed.xdmf", settled=settled, energy_growth=0,
+                         view="three_quarter", command=sys.argv)
+        try:
+            rec = sim.run(t_max)
+        except SimulationError as err:
+            PETSc.Sys.Print(f"knitfem relax: error: {err} (output so far kept in "
+                            f"{out.path})")
+            return 3
+        P = sim.control_points()
+        speed = np.sqrt(2 * rec["kinetic_energy"] / mass)
+        if comm.rank == 0:
+            rec.update(knit_measures(jersey, fabric, P), residual_speed_m_s=speed,
+                       settled=bool(speed < rest), rows=jersey.rows,
+                       cols=jersey.cols, shape=jersey.knit,
+                       template_scale=list(scale))
+            RelaxedKnit(jersey.rows, jersey.cols, jersey.knit, jersey.radius,
+                        fabric.X, P, fabric.contacts, fabric.separation,
+                        rec["loop_length_m"]).save(os.path.join(out.path,
+                                                                "relaxed.h5"))
+            io.draw(os.path.join(out.path, "relaxed.png"), fabric.open_splines(P),
+                    jersey.radius, view="three_quarter",
+                    title=f"{jersey.rows}x{jersey.cols} jersey relaxed: k_c "
+                          f"{rec['k_c']:.2f}, k_w {rec['k_w']:.2f}")
+        sim.write_summary(rec, "completed" if speed < rest else
+                          f"not at rest by t = {sim.t:g} s")
+        if comm.rank == 0:
+            PETSc.Sys.Print(
+                f"relaxed in {rec['steps']} steps ({sim.t:.3g} s): loop length "
+                f"{1e3 * rec['loop_length_m']:.3f} mm, courses "
+                f"{1e3 * rec['course_spacing_m']:.3f} mm, wales "
+                f"{1e3 * rec['wale_spacing_m']:.3f} mm apart; k_c {rec['k_c']:.3f}, "
+                f"k_w {rec['k_w']:.3f}, k_s {rec['k_s']:.2f}; written to "
+                f"{out.path}/relaxed.h5")
+    finally:
+        out.release()
+    return 0 if speed < rest else 3
+
+
+RELAX_DAMPING = 30.0
+"""Default c_d [1/s] of a relaxation: a damped flow to rest (its path does not
+matter, only where it ends); 30/s damps the 7×7 jersey's slowest bending
+modes within a few tenths of a second."""
+
+
+def material_from_options(opts, scene=None, gravity=9.81, damping=None):
     """Yarn material from -knit_rho, -knit_EA, -knit_EI, -knit_gravity, -knit_damping
-    (default: the air drag of ``scene``, a ``Scene`` class)."""
+    (default damping: ``damping`` where given, else the air drag of ``scene``,
+    a ``Scene`` class)."""
     from knitfem.model.full import Material
 
-    d = Material(damping=scene.air_drag if scene else 0.0)
+    d = Material(gravity=gravity, damping=damping if damping is not None else
+                 scene.air_drag if scene else 0.0)
     return Material(
         rho=opts.getReal("rho", d.rho, "linear density [kg/m]", positive=True),
         EA=opts.getReal("EA", d.EA, "axial stiffness EA [N]", positive=True),
@@ -158,10 +277,13 @@ def build_system(comm, opts, fabric, material):
     from knitfem.lod.mixed import mixed_from_options
     from knitfem.model.full import FullModel
     from knitfem.lod.reduced import embedding_from_options, reduced_from_options, stretch_options
+    from knitfem.run.relax import stress_free
 
     kind, nq, kernels = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
+    if kind != "full":                   # the embedding holds the stitches
+        fabric = stress_free(fabric)
     try:
         own = kind != "reduced" or stretch_options(opts, bool(fabric.bodies)) == "yarn"
         full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own)
@@ -290,7 +412,7 @@ def run(comm):
 
     opts = KnitOptions()
     name = opts.getChoice("scene", "hanging", tuple(SCENES), "scene")
-    jersey = jersey_from_options(opts)
+    jersey = rest_from_options(opts, jersey_from_options(opts))
     for cls in SCENES.values():                  # every scene's options declared
         params = cls.declare(opts, jersey)
         if cls.name == name:
@@ -385,6 +507,8 @@ def run(comm):
                        lod=[lod.n1, lod.n2] if lod else None)
         if any(turn):
             problem["start_rotation"] = list(turn)
+        if jersey.rest is not None:
+            problem["rest"] = jersey.rest.source
         if fabric.bodies:
             problem["bodies"] = [b.describe() for b in fabric.bodies]
             problem["friction"] = friction

@@ -16,7 +16,7 @@ import sys
 
 import petsc4py
 
-COMMANDS = ("dofs", "pattern", "run", "deform")
+COMMANDS = ("dofs", "pattern", "relax", "run", "deform")
 HELP = ("-help", "-h", "--help")
 
 USAGE = """\
@@ -28,6 +28,8 @@ commands (each one's options: knitfem <command> -help)
   pattern   write a jersey's (or a tube's) centrelines (VTU) and a PNG picture
               knitfem pattern -knit_rows 7 -knit_cols 7 -o out/pattern
               knitfem pattern -knit_shape tube -knit_rows 10 -knit_cols 16 -o out/tube
+  relax     relax a knit from its template: a straight yarn bent into its loops
+              knitfem relax -knit_rows 12 -knit_cols 12 -o out/relax
   run       simulate a scene with the full or reduced model, or its statics
               knitfem run -knit_scene hanging -knit_model reduced -o out/hanging
   deform    impose a deformation on the bounding volume and rebuild the yarns

@@ -80,7 +80,8 @@ def tilted(fabric, degrees):
     c, s = np.cos(theta), np.sin(theta)
     R = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
     yarn, s_fixed = fabric.fixed
-    held = np.stack([bspline.curve_points(fabric.X[f], np.atleast_1d(t),
+    start = fabric.start_points()
+    held = np.stack([bspline.curve_points(start[f], np.atleast_1d(t),
                                           closed=fabric.closed)[0]
                      for f, t in zip(yarn, s_fixed)])
     return fabric.rotated(R, held.mean(axis=0))
@@ -91,9 +92,9 @@ def drape(jersey, clearance=1e-3):
     its thickness, to +y) and a sphere of radius width/4 under its centre,
     its top ``clearance`` below the lowest yarn surface."""
     fabric = jersey_fabric(jersey)
-    centre = fabric.X.reshape(-1, 3).mean(axis=0)
+    centre = fabric.start_points().reshape(-1, 3).mean(axis=0)
     flat = fabric.rotated(rotation((-90, 0, 0)), centre)
-    X = flat.X.reshape(-1, 3)
+    X = flat.start_points().reshape(-1, 3)
     width = np.ptp(X[:, 0])
     R = width / 4
     top = X[:, 1].min() - flat.radius - clearance

@@ -157,8 +157,11 @@ def point_rows(offset, s, ncp, closed=False, nu=0):
     return cols, bspline.basis(u, nu)
 
 
-def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X):
-    """Contacts of P_a(s_a) with P_b(s_b), invariants taken at rest X (ncp, 3)."""
+def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X,
+             separation=None):
+    """Contacts of P_a(s_a) with P_b(s_b), invariants taken at rest X (ncp, 3),
+    the distance |R| held ``separation`` where given (R ⟂ T_a, T_b: the
+    parameters are the rest's closest approach)."""
     ca, va = point_rows(yarn_offset[yarn_a], s_a, ncp, closed)
     cb, vb = point_rows(yarn_offset[yarn_b], s_b, ncp, closed)
     da = point_rows(yarn_offset[yarn_a], s_a, ncp, closed, nu=1)[1]
@@ -175,6 +178,8 @@ def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X):
     scale = np.stack([0.5 / np.linalg.norm(r, axis=1), 1 / np.linalg.norm(Ta, axis=1),
                       1 / np.linalg.norm(Tb, axis=1)], axis=1)
     rest = np.stack([np.sum(r * r, 1), np.sum(r * Ta, 1), np.sum(r * Tb, 1)], axis=1)
+    if separation is not None:
+        scale[:, 0], rest[:, 0] = 0.5 / separation, separation**2
     return Contacts(np.asarray(yarn_a), cols, U, V, scale, rest)
 
 
@@ -197,4 +202,4 @@ def build(fabric):
     ya, sa, yb, sb = fabric.contacts
     holds = Holds.concatenate([fixed_points(*fabric.fixed, offset, *yarns, X0),
                                fixed_points(*fabric.clamped, offset, *yarns, X0, nu=1)])
-    return contacts(ya, sa, yb, sb, offset, *yarns, X), holds
+    return contacts(ya, sa, yb, sb, offset, *yarns, X, fabric.separation), holds

@@ -41,6 +41,13 @@ class Fabric:
     friction : Coulomb coefficient μ between the yarns and the bodies.
     closed : every yarn a closed curve (a course knitted in the round): ncp
         segments, control points read modulo ncp (``bspline``).
+    natural : the yarn is straight at rest (natural curvature κ₀ = 0): X
+        gives the rest lengths only, and the loops are bent (prestressed);
+        else X is a stress-free template, κ₀ its curvature.
+    start_X : (nyarn, ncp, 3) control points of the start state where it is
+        not the rest turned (a relaxed knit, a scaled template), or None.
+    separation : the distance the contacts hold between the two centrelines
+        (2r for yarns that touch), or None for the rest's.
     """
 
     X: np.ndarray
@@ -56,6 +63,9 @@ class Fabric:
     bodies: tuple = ()
     friction: float = 0.0
     closed: bool = False
+    natural: bool = False
+    start_X: np.ndarray = None
+    separation: float = None
 
     @property
     def nyarn(self):
@@ -102,8 +112,9 @@ class Fabric:
         return (points - centre) @ np.asarray(R).T + centre
 
     def start_points(self):
-        """Control points (nyarn, ncp, 3) of the start state: X turned."""
-        return self.turn(self.X)
+        """Control points (nyarn, ncp, 3) of the start state: ``start_X``, or
+        X, turned."""
+        return self.turn(self.X if self.start_X is None else self.start_X)
 
     def started_turned(self, R):
         """The same fabric (same rest) started turned by R about its centroid."""
@@ -112,5 +123,6 @@ class Fabric:
 
     def rotated(self, R, centre):
         """The same fabric turned rigidly by the rotation R about ``centre``."""
-        X = (self.X - centre) @ np.asarray(R).T + centre
-        return replace(self, X=X, frame=np.asarray(R) @ self.frame)
+        X, S = ((P - centre) @ np.asarray(R).T + centre if P is not None else None
+                for P in (self.X, self.start_X))
+        return replace(self, X=X, start_X=S, frame=np.asarray(R) @ self.frame)

@@ -71,13 +71,17 @@ class Jersey:
     shape : LoopShape
     knit : {"flat", "tube"}
         A flat swatch of open courses, or a tube knitted in the round.
+    rest : a relaxed knit of these stitches (``run.relax.RelaxedKnit``) its
+        fabrics start from, or None for the stress-free template.
     """
 
-    def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat"):
+    def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat",
+                 rest=None):
         if knit not in SHAPES:
             raise ValueError(f"knit shape {knit!r}: use one of {', '.join(SHAPES)}")
         self.rows, self.cols = int(rows), int(cols)
         self.radius, self.shape, self.knit = float(radius), shape, knit
+        self.rest = rest
         self.scale = self.radius / shape.r
         self.nseg = SEGMENTS_PER_STITCH * self.cols
         self.ncp = self.nseg if self.closed else self.nseg + 3
@@ -215,6 +219,8 @@ def jersey_fabric(jersey, hold=None):
     X = np.stack([jersey.control_points(f) for f in range(jersey.rows)])
     k, sa, sb = jersey.contacts()
     fab = Fabric(X, jersey.radius, contacts=(k, sa, k + 1, sb), closed=jersey.closed)
+    if jersey.rest is not None:
+        fab = jersey.rest.apply(fab)
     top = jersey.rows - 1
     heads = jersey.heads(top)
     if hold == "top":

@@ -369,7 +369,7 @@ class MixedModel(EmbeddedModel):
         self.sampled = (SampledElements(full, emb, elements, weights)
                         if len(elements) else None)
         self.touch = YarnElements(el.X, el.conn[touching], el.rho, el.EA, el.EI,
-                                  nq=len(el.weights))
+                                  nq=len(el.weights), natural=el.natural)
         self.touch.delta = el.delta
         self.touch_kernels = yarn_kernels(self.touch, full.kernels.kind)
         # K_T's pattern: T's elements and the kept contacts reaching our rows

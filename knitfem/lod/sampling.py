@@ -71,7 +71,7 @@ class SampledElements:
         pts, local = np.unique(el.conn[self.elements], return_inverse=True)
         self.points = pts
         self.sub = YarnElements(el.X[pts], local.reshape(-1, 4), el.rho, el.EA,
-                                el.EI, nq=len(el.weights))
+                                el.EI, nq=len(el.weights), natural=el.natural)
         self.sub.W = self.sub.W * self.weights[:, None]
         self.sub.delta = el.delta
         self.kernels = yarn_kernels(self.sub, full.kernels.kind)

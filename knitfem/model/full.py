@@ -104,7 +104,8 @@ class FullModel:
             Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
                                          material.rho, material.EA if stretch else 0.0,
-                                         material.EI, nq=nq)
+                                         material.EI, nq=nq,
+                                         natural=fabric.natural)
             self.kernels = yarn_kernels(self.elements, kernels)
             self.barrier = Barrier(fabric.bodies, self.elements, fabric.radius,
                                    material.rho * material.gravity,

@@ -74,12 +74,18 @@ class Simulation:
         Rank 0: the worker that draws the pictures, started early by the
         caller (its matplotlib import then overlaps the set-up); one is
         started at the first picture otherwise. ``close`` finishes it.
+    series : str
+        File name of the XDMF series of the yarns in the output directory.
+    settled : callable or None
+        Of the energies of an output frame (``energies``): True ends the run
+        there, before t_end (a relaxation that has come to rest).
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
-                 animation="", energy_growth=0.5, stall_steps=100, painter=None):
+                 animation="", energy_growth=0.5, stall_steps=100, painter=None,
+                 series="yarns.xdmf", settled=None):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -93,6 +99,7 @@ class Simulation:
         self.energy_growth, self.stall_steps = energy_growth, stall_steps
         self.verbose, self.view, self.animation = verbose, view, animation
         self.adapt = adapt          # called after every step (knitfem.lod.adapt)
+        self.series_name, self.settled = series, settled
         self.x, self.v = system.start_state(), system.start_state()
         self.v.zeroEntries()
         self.t, self.step_count = 0.0, 0
@@ -233,7 +240,7 @@ class Simulation:
     def _write_frame(self, P):
         if self.series is None:
             keep, note = self.series_from or (None, "")
-            self.series = io.CentrelineSeries(self._path("yarns.xdmf"), P,
+            self.series = io.CentrelineSeries(self._path(self.series_name), P,
                                               self.full.fabric.radius, keep, note)
             if self.bodies:                  # for ParaView, beside the yarns
                 io.write_bodies(self._path("bodies.vtu"), self.bodies,
@@ -486,6 +493,8 @@ class Simulation:
                     self.progress(m)
                     self.write_output(self.control_points())
                     self.check_energy()
+                    if self.settled is not None and self.settled(m):
+                        break
                 self.check_pace(t_end)
                 self.after_step(signum)
             self.wall_time = time.perf_counter() - start

@@ -258,12 +258,13 @@ class YarnElements:
     W : (ne, nq)
         Rest line element w_q |X'|.
     kappa0 : (ne, nq)
-        Rest curvature κ₀ = |X' × X''| / |X'|³.
+        Natural curvature κ₀: 0 for a ``natural`` (straight) yarn, else the
+        rest curve's, |X' × X''| / |X'|³.
     delta : float
         Curvature regularisation of ``bend_terms``: 10⁻¹² / mean |X'|.
     """
 
-    def __init__(self, X, conn, rho, EA, EI, nq=4):
+    def __init__(self, X, conn, rho, EA, EI, nq=4, natural=False):
         self.X = np.asarray(X, dtype=float)
         self.conn = np.asarray(conn, dtype=np.int64).reshape(-1, 4)
         self.ncp, self.ne, self.nq = len(self.X), len(self.conn), nq
@@ -277,7 +278,8 @@ class YarnElements:
         self.Xp2 = np.einsum("eqi,eqi->eq", self.Xp, self.Xp)
         self.jac = np.sqrt(self.Xp2)
         self.W = self.weights * self.jac
-        self.kappa0 = self._curvature(Y)
+        self.natural = natural
+        self.kappa0 = np.zeros_like(self.W) if natural else self._curvature(Y)
         self.delta = 1e-12 / self.jac.mean() if self.ne else 1e-12
         self._sampler = None                 # of ``points``
 

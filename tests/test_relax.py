@@ -1,0 +1,97 @@
+"""A naturally straight yarn relaxed into its loops (``knitfem relax``), and
+scenes started from the relaxed knit (``-knit_rest``)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import meshio
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from knitfem.knit.pattern import Jersey, jersey_fabric
+from knitfem.run.relax import RelaxedKnit, natural_fabric, stress_free, yarn_lengths
+from knitfem.yarn.elements import YarnElements
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
+                                reason="runs knitfem in subprocesses")
+
+
+def knitfem(*args):
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(__file__)))
+    return subprocess.run([sys.executable, "-m", "knitfem.cli", *args, "-skip_petscrc"],
+                          capture_output=True, text=True, env=env, timeout=600)
+
+
+def test_natural_fabric_has_the_loop_length_asked_and_no_natural_curvature():
+    j = Jersey(3, 4)
+    template = jersey_fabric(j)
+    fab = natural_fabric(j, template, 20e-3, scale=(1.2, 1.0, 1.0))
+    ell = yarn_lengths(fab.X, fab.closed) / j.cols
+    assert ell == pytest.approx(np.full(3, 20e-3 * ell[0] / ell.mean()), rel=1e-13)
+    assert ell.mean() == pytest.approx(20e-3, rel=1e-13)
+    el = YarnElements(fab.X.reshape(-1, 3), fab.connectivity(0, fab.nyarn), 1, 1, 1,
+                      natural=fab.natural)
+    assert not el.kappa0.any() and fab.separation == 2 * j.radius
+    # the start is the template stretched along the courses about its centroid
+    c = template.X.reshape(-1, 3).mean(axis=0)
+    assert np.allclose(fab.start_X - c, (template.X - c) * [1.2, 1.0, 1.0],
+                       rtol=0, atol=1e-15)
+    back = stress_free(fab)
+    assert back.X is fab.start_X and not back.natural and back.separation is None
+
+
+def test_relaxed_knit_file_round_trip_and_mismatch(tmp_path):
+    j = Jersey(2, 3)
+    fab = natural_fabric(j, jersey_fabric(j))
+    knit = RelaxedKnit(2, 3, "flat", j.radius, fab.X, fab.X + 1e-4, fab.contacts,
+                       fab.separation, 0.0168)
+    knit.save(str(tmp_path / "relaxed.h5"))
+    back = RelaxedKnit.load(str(tmp_path / "relaxed.h5"))
+    assert np.array_equal(back.positions, knit.positions)
+    assert all(np.array_equal(a, b) for a, b in zip(back.contacts, knit.contacts))
+    with pytest.raises(ValueError, match="give the same -knit_rows"):
+        back.check(Jersey(3, 3))
+
+
+def test_relax_then_a_free_run_stays_put(tmp_path):
+    """The relaxed knit is at rest (RMS speed below -knit_rest_speed), and a
+    free run without gravity from it moves no point more than 1e-3 r, full
+    (its prestress balanced by the crossings) and reduced (its rest the
+    relaxed knit): measured 1.2e-6 r and 5e-14 r on a 5x5."""
+    out = tmp_path / "relax"
+    p = knitfem("relax", "-knit_rows", "3", "-knit_cols", "3", "-o", str(out))
+    assert p.returncode == 0, p.stderr
+    rec = json.loads((out / "summary.json").read_text())
+    assert rec["status"] == "completed" and rec["settled"]
+    assert rec["loop_length_m"] == pytest.approx(16.82e-3, rel=1e-3)
+    for key in ("course_spacing_m", "wale_spacing_m", "k_c", "k_w", "k_s"):
+        assert rec[key] > 0
+    assert rec["k_s"] == pytest.approx(rec["k_c"] * rec["k_w"], rel=1e-12)
+    series = meshio.xdmf.TimeSeriesReader(str(out / "relaxed.xdmf"))
+    series.read_points_cells()
+    assert series.num_steps >= 2 and (out / "relaxed.png").exists()
+    for model in ("full", "reduced"):
+        run = tmp_path / model
+        p = knitfem("run", "-knit_scene", "freefall", "-knit_gravity", "0",
+                    "-knit_rows", "3", "-knit_cols", "3", "-knit_rest",
+                    str(out / "relaxed.h5"), "-knit_model", model, "-knit_t_end",
+                    "0.05", "-o", str(run))
+        assert p.returncode == 0, p.stderr
+        r = meshio.xdmf.TimeSeriesReader(str(run / "yarns.xdmf"))
+        r.read_points_cells()
+        P = [r.read_data(k)[1]["position"] for k in range(r.num_steps)]
+        assert np.abs(P[-1] - P[0]).max() < 1e-3 * 5e-4, model
+
+
+def test_rest_of_other_stitches_is_refused(tmp_path):
+    j = Jersey(2, 3)
+    fab = natural_fabric(j, jersey_fabric(j))
+    RelaxedKnit(2, 3, "flat", j.radius, fab.X, fab.X, fab.contacts, fab.separation,
+                0.0168).save(str(tmp_path / "relaxed.h5"))
+    p = knitfem("run", "-knit_rows", "4", "-knit_rest", str(tmp_path / "relaxed.h5"),
+                "-o", str(tmp_path / "out"))
+    assert p.returncode == 2
+    assert p.stderr.strip().count("\n") == 0 and "give the same" in p.stderr
