@@ -140,7 +140,7 @@ def relax(comm):
     bent into its loops, at equilibrium (``run.relax``)."""
     import sys
 
-    from solvers.integrators import BackwardEuler, SimulationError
+    from solvers.integrators import BackwardEuler
     from solvers.stepping import StepControl
 
     from knitfem import io
@@ -192,12 +192,9 @@ def relax(comm):
                          out=out, scene="relax", output_every=every,
                          series="relaxed.xdmf", settled=settled, energy_growth=0,
                          view="three_quarter", command=sys.argv)
-        try:
-            rec = sim.run(t_max)
-        except SimulationError as err:
-            PETSc.Sys.Print(f"knitfem relax: error: {err} (output so far kept in "
-                            f"{out.path})")
-            return 3
+        rec = simulate(sim, t_max, "relax", out)
+        if isinstance(rec, int):
+            return rec
         P = sim.control_points()
         speed = np.sqrt(2 * rec["kinetic_energy"] / mass)
         if comm.rank == 0:
@@ -400,11 +397,9 @@ def run(comm):
     """Simulate a scene with the full or reduced model (or solve its statics)."""
     import sys
 
-    from solvers.integrators import SimulationError
     from solvers.statics import StaticSolver
 
     from knitfem.lod.adapt import adapt_options, adaptation_from_options
-    from knitfem.run.interrupts import Interrupted
     from knitfem.run.output import CHANGEABLE, OutputDirectory
     from knitfem.run.painter import Painter
     from knitfem.cli.scenes import SCENES, make_fabric
@@ -524,15 +519,9 @@ def run(comm):
             sim.restart(restart, change)
         if adapt is not None:
             adapt(sim)                   # the indicator (and regions) at the start
-        try:
-            rec = sim.run(t_end)
-        except SimulationError as err:
-            PETSc.Sys.Print(f"knitfem run: error: {err} (output so far kept in "
-                            f"{out.path})")
-            return 3
-        except Interrupted as stop:
-            PETSc.Sys.Print(f"knitfem run: {stop}")
-            return stop.code
+        rec = simulate(sim, t_end, "run", out)
+        if isinstance(rec, int):
+            return rec
         if adapt is not None:
             adapt.report(sim, out.path)
         for prefix, icntl14 in rec["mumps_workspace_raised"].items():
@@ -551,6 +540,24 @@ def run(comm):
         if painter is not None:          # finished by the run's close, or set-up failed
             painter.stop()
         out.release()
+
+
+def simulate(sim, t_end, command, out):
+    """``sim.run(t_end)``: its summary, or the exit status of a run that
+    failed (3) or was interrupted, after one line saying so."""
+    from solvers.integrators import SimulationError
+
+    from knitfem.run.interrupts import Interrupted
+
+    try:
+        return sim.run(t_end)
+    except SimulationError as err:
+        PETSc.Sys.Print(f"knitfem {command}: error: {err} (output so far kept in "
+                        f"{out.path})")
+        return 3
+    except Interrupted as stop:
+        PETSc.Sys.Print(f"knitfem {command}: {stop}")
+        return stop.code
 
 
 def explicit_step_fits(system, dt):
