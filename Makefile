@@ -7,7 +7,7 @@ VPY     := $(VENV)/bin/python
 APT     := python3-petsc4py python3-mpi4py python3-h5py python3-meshio \
            python3-scipy python3-matplotlib python3-pytest python3-venv \
            python3-setuptools python3-pip openmpi-bin cython3 python3-dev gcc \
-           libopenblas-dev
+           libopenblas-dev python3-sphinx furo python3-myst-parser
 export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
