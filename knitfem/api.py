@@ -33,7 +33,7 @@ from knitfem.run.simulation import Simulation
 
 __all__ = ["jersey", "scene", "material", "model", "full_model", "reduced_model",
            "mixed_model", "integrator", "simulation", "start", "advance",
-           "control_points", "centrelines"]
+           "equilibrium", "control_points", "centrelines", "picture"]
 
 SNAPSHOTS = (0.4, 1.0, 2.0, 3.0)
 """``knitfem run``'s default -knit_snapshots [s]: PNGs drawn at these times."""
@@ -253,6 +253,24 @@ def advance(integrator, x, v, t=0.0, steps=1):
     return t
 
 
+def equilibrium(system, x=None, load_steps=1):
+    """Static equilibrium of ``system`` (collective):
+
+        −Q(ε, 0) + C(ε)ᵀμ = 0,   g(ε) = 0,
+
+    by Newton with pseudo-transient continuation from ``x`` (default: the
+    start state), gravity and loads applied in ``load_steps`` equal
+    increments; ``-static_snes_monitor`` and the other -static_ options
+    apply. Returns (x, Newton iterations); raises SimulationError when
+    Newton does not converge.
+    """
+    from solvers.statics import StaticSolver
+
+    if x is None:
+        x = system.start_state()
+    return x, StaticSolver(system, load_steps).solve(x)
+
+
 def control_points(system, q=None):
     """The yarns' control points (yarns, points a yarn, 3) of a state, on
     every rank (collective).
@@ -276,3 +294,16 @@ def centrelines(system, q=None):
     as the output's time series samples them; arguments as
     ``control_points`` (collective)."""
     return sampled_centrelines(control_points(system, q))
+
+
+def picture(path, system, q=None, title="", view="front"):
+    """Draw a state as a PNG at ``path``: the yarns as tubes of their radius
+    and the bodies, seen from ``view`` ("front", "side", "oblique",
+    "three_quarter"); arguments as ``control_points`` (collective; rank 0
+    draws)."""
+    from knitfem import io
+
+    P = control_points(system, q)
+    fabric = getattr(system, "system", system).fabric
+    if system.comm.rank == 0:
+        io.draw(path, P, fabric.radius, title=title, view=view, bodies=fabric.bodies)
