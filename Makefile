@@ -15,7 +15,7 @@ MPIRUN  := mpirun -n 2
 PYTEST  := $(VPY) -m pytest -p no:cacheprovider -q
 OUT     ?= out/demo
 
-.PHONY: setup apt demo test test-serial test-parallel clean
+.PHONY: setup apt demo test test-serial test-parallel docs clean
 
 # Byte-compiled now, so that a run reads its modules' .pyc even where
 # PYTHONDONTWRITEBYTECODE is set (40 ms of every process's start otherwise).
@@ -58,5 +58,11 @@ test-parallel:
 	# the saddle tests count factorisation events: a process of their own
 	timeout 300 $(MPIRUN) $(PYTEST) tests/test_saddle.py
 
+# The documentation, warnings as errors; its options and results tables are
+# written at build time (docs/_ext/knitfem_docs.py).
+docs: setup
+	$(VPY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
 clean:
-	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so
+	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so \
+	  docs/_build docs/_generated

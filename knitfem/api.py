@@ -87,7 +87,7 @@ def jersey(hold=None, **options):
         first stitch.
     **options
         ``rows`` (7), ``cols`` (7), ``radius`` (5e-4 m), ``shape`` ("flat"
-        or "tube"): the -knit_ options of the same names.
+        or "tube"): the ``-knit_`` options of the same names.
 
     Not collective: pure geometry, the same on every rank.
     """
@@ -161,7 +161,7 @@ def model(fabric, kind="full", material=None, comm=None, **options):
     comm : PETSc.Comm
         Default ``PETSc.COMM_WORLD``.
     **options
-        The model's -knit_ options without the prefix: ``quadrature`` (4),
+        The model's ``-knit_`` options without the prefix: ``quadrature`` (4),
         ``kernels`` ("compiled"), ``lod`` ((5, 5); (6, 6) with bodies),
         ``volume``, ``sampling`` ("sampled"), ``sampling_tol`` (2e-3),
         ``stretch`` ("yarn"; "shell" with bodies), ``full_region(s)``.
@@ -260,7 +260,7 @@ def equilibrium(system, x=None, load_steps=1):
 
     by Newton with pseudo-transient continuation from ``x`` (default: the
     start state), gravity and loads applied in ``load_steps`` equal
-    increments; ``-static_snes_monitor`` and the other -static_ options
+    increments; ``-static_snes_monitor`` and the other ``-static_`` options
     apply. Returns (x, Newton iterations); raises SimulationError when
     Newton does not converge.
     """
