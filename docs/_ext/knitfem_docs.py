@@ -75,14 +75,14 @@ def options_page():
 def runs(node, path=()):
     """(path, record) of every run a result file holds: a dict with a step
     count and a size or an iteration count; nothing inside a run is
-    searched."""
+    searched; the "before" runs a study keeps for comparison are left out."""
     if isinstance(node, dict):
         if isinstance(node.get("steps"), int) and (
                 {"unknowns", "newton", "newton_iterations"} & set(node)):
             yield path, node
             return
         for key, value in node.items():
-            if key not in ("log", "options", "machine", "summary"):
+            if key not in ("log", "options", "machine", "summary", "before"):
                 yield from runs(value, path + (str(key),))
     elif isinstance(node, list):
         for value in node:
@@ -130,7 +130,7 @@ def command_of(name, rec):
                 f"hanging.gif -o out/results_{name}")
     flags = " ".join(f"-{k}" + ("" if v is None else f" {v}")
                      for k, v in (rec.get("options") or {}).items()
-                     if k != "bench_results")
+                     if k not in ("bench_results", "bench_plot"))
     ranks = rec.get("ranks", 1)
     launch = f"mpirun -n {ranks} " if ranks > 1 else ""
     return (f"{launch}.venv/bin/python -m benchmarks.{study} {flags} "
@@ -146,9 +146,11 @@ def result_page(path):
     keep = [i for i in range(len(HEADER)) if any(str(r[i]) for r in rows)]
     lines = [f"### {name}", "", "Made by:", "", "```text", command_of(name, rec),
              "```", ""]
-    if rec.get("machine"):
-        lines += [f"Machine: {cell(rec['machine'])}; PETSc {rec.get('petsc', '')}.",
-                  ""]
+    machine = rec.get("machine")
+    if isinstance(machine, dict):
+        lines += [f"Machine: {machine.get('cpu', '')}, {machine.get('cores', '')} "
+                  f"cores, {machine.get('memory_gib', '')} GiB; PETSc "
+                  f"{rec.get('petsc', '')}; {rec.get('ranks', 1)} rank(s).", ""]
     if rows:
         lines += ["| " + " | ".join(HEADER[i] for i in keep) + " |",
                   "|" + "---|" * len(keep)]
