@@ -7,6 +7,7 @@ import ast
 import os
 import re
 import subprocess
+import sys
 
 import pytest
 from mpi4py import MPI
@@ -62,3 +63,27 @@ def test_garment_runs_shown_are_the_benchmarks_commands():
                 and ("-knit_shape tube" in cmd or "-knit_scene drape" in cmd)]
     assert len(garments) >= 3
     assert set(garments) <= set(commands.values())
+
+
+PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.M | re.S)
+
+
+def python_snippets():
+    """(document, code) of the Python blocks shown that use the API."""
+    from benchmarks.doc_commands import documents
+
+    return [(os.path.relpath(path, ROOT), code) for path in documents()
+            for code in PYTHON_BLOCK.findall(open(path).read())
+            if "import knitfem" in code]
+
+
+@pytest.mark.parametrize("doc,code", python_snippets(),
+                         ids=[d for d, _ in python_snippets()])
+def test_python_snippet_runs_as_written(tmp_path, doc, code):
+    script = tmp_path / "snippet.py"
+    script.write_text(code)
+    p = subprocess.run([sys.executable, str(script), "-skip_petscrc"],
+                       capture_output=True, text=True, env=environment(),
+                       cwd=tmp_path, timeout=300)
+    assert p.returncode == 0, (doc, p.stderr[-2000:])
+    assert (tmp_path / "out").is_dir()
