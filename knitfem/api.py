@@ -157,7 +157,8 @@ def model(fabric, kind="full", material=None, comm=None, **options):
     fabric : knitfem.knit.fabric.Fabric
         From ``jersey`` or ``scene``.
     material : Material
-        Default ``Material()`` (no damping).
+        Default: that of the -knit_ options in PETSc's database, else
+        ``Material()`` (no damping).
     comm : PETSc.Comm
         Default ``PETSc.COMM_WORLD``.
     **options
@@ -166,11 +167,10 @@ def model(fabric, kind="full", material=None, comm=None, **options):
         ``volume``, ``sampling`` ("sampled"), ``sampling_tol`` (2e-3),
         ``stretch`` ("yarn"; "shell" with bodies), ``full_region(s)``.
     """
-    from knitfem.model.full import Material
-
     opts = GivenOptions(model=kind, **options)
-    system = build_system(comm or PETSc.COMM_WORLD, opts, fabric,
-                          material or Material())
+    if material is None:                 # -knit_rho, -knit_EA ... if given
+        material = material_from_options(opts)
+    system = build_system(comm or PETSc.COMM_WORLD, opts, fabric, material)
     opts.check("model")
     return system
 

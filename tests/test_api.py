@@ -53,6 +53,24 @@ def test_defaults_are_the_command_lines():
     assert len(held) == 3 and np.ptp(hanging.X[..., 2]) > np.ptp(fabric.X[..., 2])
 
 
+def test_options_database_applies_where_keywords_are_silent():
+    from petsc4py import PETSc
+
+    opts = PETSc.Options()
+    opts.setValue("knit_EA", "123")
+    opts.setValue("knit_cols", "4")
+    try:
+        fabric = knitfem.jersey(rows=2)                 # cols from the database
+        assert fabric.X.shape[1] == 8 * 4 + 3
+        full = knitfem.full_model(fabric)
+        assert full.material.EA == 123.0
+        assert knitfem.material(EA=7.0).EA == 7.0       # a keyword wins
+        full.destroy()
+    finally:
+        opts.delValue("knit_EA")
+        opts.delValue("knit_cols")
+
+
 def test_keywords_are_checked_like_options():
     with pytest.raises(KnitError, match="-knit_rows"):
         knitfem.jersey(rows=0)
