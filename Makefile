@@ -7,7 +7,7 @@ VPY     := $(VENV)/bin/python
 APT     := python3-petsc4py python3-mpi4py python3-h5py python3-meshio \
            python3-scipy python3-matplotlib python3-pytest python3-venv \
            python3-setuptools python3-pip openmpi-bin cython3 python3-dev gcc \
-           libopenblas-dev
+           libopenblas-dev python3-sphinx furo python3-myst-parser
 export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
@@ -15,7 +15,7 @@ MPIRUN  := mpirun -n 2
 PYTEST  := $(VPY) -m pytest -p no:cacheprovider -q
 OUT     ?= out/demo
 
-.PHONY: setup apt demo test test-serial test-parallel clean
+.PHONY: setup apt demo test test-serial test-parallel docs clean
 
 # Byte-compiled now, so that a run reads its modules' .pyc even where
 # PYTHONDONTWRITEBYTECODE is set (40 ms of every process's start otherwise).
@@ -54,9 +54,15 @@ test-serial:
 
 test-parallel:
 	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py \
-	  tests/test_frame.py tests/test_tube.py tests/test_shell.py
+	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py
 	# the saddle tests count factorisation events: a process of their own
 	timeout 300 $(MPIRUN) $(PYTEST) tests/test_saddle.py
 
+# The documentation, warnings as errors; its options and results tables are
+# written at build time (docs/_ext/knitfem_docs.py).
+docs: setup
+	$(VPY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
 clean:
-	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so
+	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so \
+	  docs/_build docs/_generated

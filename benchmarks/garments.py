@@ -5,8 +5,8 @@ draped on a sphere; full vs reduced model, wall time and shape difference.
     .venv/bin/python -m benchmarks.garments -bench_cases tube,sleeve
     .venv/bin/python -m benchmarks.garments -bench_results benchmarks/results
 
-Each case is a ``knitfem run`` command line exactly as the README shows it
-(``COMMANDS``), run once as written (the reduced model: ``-knit_model
+Each case is a ``knitfem run`` command line exactly as the documentation
+shows it (``COMMANDS``), run once as written (the reduced model: ``-knit_model
 reduced``) and once with ``-knit_model full``, each into
 out/benchmarks/garments/<case>_<model>. Per run: wall time of the whole process,
 steps, Newton iterations, the summary's drop, sag, smallest distance to a
@@ -34,8 +34,9 @@ from .common import (RESULTS, KnitError, KnitOptions, PETSc, markdown_table, rea
 STUDY = "garments"
 KNITFEM = os.path.join(os.path.dirname(sys.executable), "knitfem")
 
-# The README's garment commands, as written there (tests/test_cli.py checks
-# that every README line with -knit_shape tube or -knit_scene drape is here).
+# The documentation's garment commands, as written there (tests/
+# test_doc_commands.py checks that every shown run with -knit_shape tube or
+# -knit_scene drape is here).
 COMMANDS = {
     "tube": "knitfem run -knit_scene hanging -knit_shape tube -knit_rows 10 "
             "-knit_cols 16 -knit_tilt 0 -knit_model reduced -knit_t_end 1 -o out/tube",

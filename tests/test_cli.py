@@ -192,42 +192,6 @@ def test_an_unprefixed_solver_option_gets_its_prefixed_name(tmp_path):
     assert "-full_snes_monitor" in p.stderr.splitlines()[-1]
 
 
-def readme_commands():
-    """The knitfem command lines of the README's code blocks."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    text = open(os.path.join(root, "README.md")).read()
-    blocks = re.findall(r"^```\n(.*?)^```", text, flags=re.M | re.S)
-    lines = [ln.split("#")[0].strip() for b in blocks for ln in b.splitlines()]
-    assert "source .venv/bin/activate" in lines
-    return [ln for ln in lines if re.match(r"(mpirun -n \d+ )?knitfem ", ln)]
-
-
-def test_readme_commands_run_as_written_after_activation(tmp_path):
-    """Every README command line, on the PATH that `source
-    .venv/bin/activate` gives: its options are known and parse (run with
-    -help appended); the quick ones, and every one that names solver
-    options, run to the end."""
-    commands = readme_commands()
-    assert len(commands) >= 7
-    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep
-               + os.environ["PATH"], OMPI_ALLOW_RUN_AS_ROOT="1",
-               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1")
-    quick = ("knitfem dofs", "knitfem pattern")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    os.symlink(os.path.join(root, "benchmarks"), tmp_path / "benchmarks")  # -options_file
-    for line in commands:
-        words = line.split()
-        runs = line.startswith(quick) or re.search(
-            r" -((full|reduced|mixed|static)_|options_file )", line)
-        for run_it in (False, True) if runs else (False,):
-            p = subprocess.run(words + ([] if run_it else ["-help"])
-                               + ["-skip_petscrc"], capture_output=True,
-                               text=True, env=env, cwd=tmp_path, timeout=300)
-            assert p.returncode == 0, (line, p.stderr)
-            assert "unknown" not in p.stderr and "warning" not in p.stderr, line
-
-
 @pytest.mark.parametrize("args,said", [
     (("-knit_scene", "drape", "-knit_shape", "tube"), "-knit_shape flat"),
     (("-knit_shape", "tube", "-knit_cols", "2"), "at least 3 stitches around"),
@@ -235,21 +199,6 @@ def test_readme_commands_run_as_written_after_activation(tmp_path):
 def test_a_tube_where_it_cannot_be_is_a_usage_error(tmp_path, args, said):
     p = knitfem("run", *args, "-o", str(tmp_path))
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and said in p.stderr
-
-
-def test_readme_garment_runs_are_the_benchmarks_commands():
-    """The README's tube, sleeve and drape runs take minutes: each is one of
-    ``benchmarks/garments.py``'s COMMANDS, which that study runs as written."""
-    import ast
-
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    tree = ast.parse(open(os.path.join(root, "benchmarks", "garments.py")).read())
-    commands = next(ast.literal_eval(node.value) for node in tree.body
-                    if isinstance(node, ast.Assign) and node.targets[0].id == "COMMANDS")
-    garments = [ln for ln in readme_commands() if ln.startswith("knitfem run")
-                and ("-knit_shape tube" in ln or "-knit_scene drape" in ln)]
-    assert len(garments) >= 3
-    assert set(garments) <= set(commands.values())
 
 
 def test_symplectic_step_above_the_stable_step_is_a_usage_error(tmp_path):

@@ -122,15 +122,15 @@ def test_corner_hung_static_and_dynamics_agree(tmp_path):
 
 
 @pytest.mark.skipif(COMM.size > 1, reason="runs knitfem in subprocesses")
-def test_readme_frame_commands_run_as_written(tmp_path):
-    """The README's corner-hung drape and turned start, as written (in a
-    scratch directory): the drape hangs below its corner, the turned start
+def test_scene_guide_frame_commands_run_as_written(tmp_path):
+    """The scene guide's corner-hung drape and turned start, as written (in
+    a scratch directory): the drape hangs below its corner, the turned start
     rests unstrained."""
-    from test_cli import readme_commands
+    from benchmarks.doc_commands import doc_commands
 
     env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep
                + os.environ["PATH"])
-    lines = [ln for ln in readme_commands() if "-knit_shape" not in ln  # garments.py
+    lines = [ln for doc, ln in doc_commands() if doc == "docs/guide/scenes.md"
              and ("-knit_hold corner" in ln or "-knit_start_rotation" in ln)]
     assert len(lines) == 2
     for line in lines:

@@ -33,7 +33,7 @@ times μ, exact in closed form. A tangent frame (normalised t_a, t_a × t_b)
 is rational in ε, with a Hessian ten times the work and singular where the
 tangents align. Measured on the hanging 7×7 (BDF2, 3 s): the invariant
 contacts take the same Newton iterations a step as the linear ones did
-(README, Results).
+(docs/results.md).
 
 A contact is three scalar rows; a world constraint is three rows, one a
 component. Rows are grouped by the yarn that owns them (course k for a

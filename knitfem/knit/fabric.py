@@ -23,23 +23,36 @@ def _empty_points():
 class Fabric:
     """Rest geometry and constraint parameters.
 
-    X : (nyarn, ncp, 3) rest control points.
-    radius : yarn radius (m).
-    contacts : (yarn_a, s_a, yarn_b, s_b) — P_a(s_a) − P_b(s_b) = d_ab.
-    fixed : (yarn, s) — P_f(s) = x₀.
-    clamped : (yarn, s) — P_f'(s) = X_f'(s) (position and direction held when
+    Attributes
+    ----------
+    X : ndarray
+        (nyarn, ncp, 3) rest control points.
+    radius : float
+        Yarn radius (m).
+    contacts : tuple
+        (yarn_a, s_a, yarn_b, s_b): P_a(s_a) − P_b(s_b) = d_ab.
+    fixed : tuple
+        (yarn, s): P_f(s) = x₀.
+    clamped : tuple
+        (yarn, s): P_f'(s) = X_f'(s) (position and direction held when
         combined with a fixed point at the same s).
-    frame : (3, 3) rotation whose columns are the pattern's course, wale and
+    frame : ndarray
+        (3, 3) rotation whose columns are the pattern's course, wale and
         thickness directions in the world (identity unless the scene turned
         the fabric); bounding volumes are boxes along these axes.
-    loads : (yarn, s, F) — constant point forces F (n, 3) [N] at P_f(s).
-    start : (R, centre) — the start state is the rest X turned rigidly by the
+    loads : tuple
+        (yarn, s, F): constant point forces F (n, 3) [N] at P_f(s).
+    start : tuple
+        (R, centre): the start state is the rest X turned rigidly by the
         rotation R about ``centre`` (``start_points``); rest quantities
         (energies, contacts) stay those of X, world holds are taken where the
         start state puts them.
-    bodies : rigid bodies the yarns keep out of (``colliders``).
-    friction : Coulomb coefficient μ between the yarns and the bodies.
-    closed : every yarn a closed curve (a course knitted in the round): ncp
+    bodies : tuple
+        Rigid bodies the yarns keep out of (``colliders``).
+    friction : float
+        Coulomb coefficient μ between the yarns and the bodies.
+    closed : bool
+        Every yarn a closed curve (a course knitted in the round): ncp
         segments, control points read modulo ncp (``bspline``).
     natural : the yarn is straight at rest (natural curvature κ₀ = 0): X
         gives the rest lengths only, and the loops are bent (prestressed);

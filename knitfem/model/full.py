@@ -44,7 +44,7 @@ EV_ASSEMBLY = PETSc.Log.Event("knitAssembly")
 
 @dataclass
 class Material:
-    """Yarn data in SI units (see README for the defaults and their source).
+    """Yarn data in SI units (the defaults and their source: docs/guide/scenes.md).
 
     rho: linear density (kg/m); EA: axial stiffness (N); EI: bending
     stiffness (N m²); gravity: g (m/s², along −y); damping: c_d (1/s),

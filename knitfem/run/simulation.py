@@ -164,7 +164,7 @@ class Simulation:
 
     def energies(self):
         """What every progress line shows (collective): kinetic, elastic (and
-        barrier) and gravity energy, |C q − d|, and the smallest distance to
+        barrier) and gravity energy, ``|C q − d|``, and the smallest distance to
         a body so far; only the reduced state, but for the bodies."""
         s = self.system
         s.M.mult(self.v, self.Mv)
