@@ -468,7 +468,8 @@ def run(comm):
                             f"{out.path})")
             return 3
         except Interrupted as stop:
-            PETSc.Sys.Print(f"knitfem run: {stop}")
+            if not stop.said:
+                PETSc.Sys.Print(f"knitfem run: {stop}")
             return stop.code
         if adapt is not None:
             adapt.report(sim, out.path)

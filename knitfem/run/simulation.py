@@ -403,9 +403,9 @@ class Simulation:
         return int(signum)
 
     def after_step(self, signum):
-        """Checkpoint when due; on a stop signal a final checkpoint, the
-        summary marked interrupted, and ``Interrupted`` with the restart
-        command (collective)."""
+        """Checkpoint when due; on a stop signal a final checkpoint, its line
+        with the restart command (``interrupts.announce``), the summary marked
+        interrupted, and ``Interrupted`` (collective)."""
         due = self.checkpoint_every and self.step_count % self.checkpoint_every == 0
         if self.output is not None and (due or signum):
             self.checkpoint()
@@ -413,15 +413,19 @@ class Simulation:
             return
         name = interrupts.Interrupted(signum).args[0].split()[-1]
         self.wall_time = time.perf_counter() - self.start
-        self.write_summary(self.summary(), f"interrupted by {name}")
         where = f"step {self.step_count}, t = {self.t:.6g} s"
         if self.output is None:
-            raise interrupts.Interrupted(signum, f"interrupted by {name} at {where}; "
-                                         "no output directory, nothing to restart")
-        path = self.last_checkpoint[0]
-        raise interrupts.Interrupted(
-            signum, f"interrupted by {name} at {where}; checkpoint {path}; continue "
-            f"with: {output.restart_command(self.command, path, self.comm.size)}")
+            stop = interrupts.Interrupted(signum, f"interrupted by {name} at {where}; "
+                                          "no output directory, nothing to restart")
+        else:
+            path = self.last_checkpoint[0]
+            stop = interrupts.Interrupted(
+                signum, f"interrupted by {name} at {where}; checkpoint {path}; "
+                f"continue with: "
+                f"{output.restart_command(self.command, path, self.comm.size)}")
+        interrupts.announce(stop)            # before mpirun's SIGKILL can come
+        self.write_summary(self.summary(), f"interrupted by {name}")
+        raise stop
 
     def solver_prefix(self):
         for name in ("snes", "ksp"):
