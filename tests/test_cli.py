@@ -67,6 +67,19 @@ def test_bad_input_one_line_exit_2(args, word):
     assert len(out) == 1 and word in out[0] and "Traceback" not in p.stderr
 
 
+@pytest.mark.parametrize("args,said", [
+    (["-knit_rows", "2", "-knit_cols", "2", "-knit_quadrature", "1"],
+     "expected an integer >= 2"),
+    (["-knit_scene", "catenary", "-knit_segments", "1", "-knit_quadrature", "3"],
+     "use -knit_quadrature 4 or more"),
+])
+def test_a_quadrature_that_leaves_the_mass_singular_is_a_usage_error(tmp_path, args,
+                                                                      said):
+    p = knitfem("run", *args, "-knit_t_end", "0.01", "-o", str(tmp_path))
+    out = (p.stdout + p.stderr).strip().splitlines()
+    assert p.returncode == 2 and len(out) == 1 and said in out[0], out
+
+
 def test_unknown_command():
     p = knitfem("fly")
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1

@@ -176,7 +176,9 @@ def model_options(opts):
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
-    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment (at least 2, "
+                     "which keeps the mass matrix positive definite; 4 integrates "
+                     "it exactly)", 2)
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
     volume_options(opts)
