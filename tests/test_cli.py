@@ -80,6 +80,22 @@ def test_a_quadrature_that_leaves_the_mass_singular_is_a_usage_error(tmp_path, a
     assert p.returncode == 2 and len(out) == 1 and said in out[0], out
 
 
+@pytest.mark.parametrize("args,said", [
+    (["-knit_static"], "-knit_static has no friction against bodies"),
+    (["-knit_integrator", "symplectic", "-knit_dt", "1e-6"],
+     "-knit_integrator symplectic has no friction against bodies"),
+])
+def test_friction_where_it_cannot_act_is_a_usage_error(tmp_path, args, said):
+    """The drape's default friction under the static solve or the explicit
+    integrator, which would drop it (the static drape ran away to |F| = 3e38
+    and blamed the body): one line, exit 2."""
+    p = knitfem("run", "-knit_scene", "drape", "-knit_rows", "3", "-knit_cols", "3",
+                *args, "-knit_t_end", "1e-5", "-o", str(tmp_path))
+    out = (p.stdout + p.stderr).strip().splitlines()
+    assert p.returncode == 2 and said in out[-1] and "friction" in out[-1], out
+    assert len([s for s in out if not s.endswith("rank(s)")]) == 1, out
+
+
 def test_unknown_command():
     p = knitfem("fly")
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1

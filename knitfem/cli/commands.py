@@ -429,6 +429,7 @@ def run(comm):
             raise KnitError(str(err)) from None
         fabric.bodies = fabric.bodies + bodies
         fabric.friction = friction
+        friction_fits(fabric, static, PETSc.Options().getString("knit_integrator", ""))
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
         from knitfem.lod.reduced import sampling_note
@@ -491,6 +492,32 @@ def run(comm):
         if painter is not None:          # finished by the run's close, or set-up failed
             painter.stop()
         out.release()
+
+
+def friction_fits(fabric, static, integrator):
+    """Refuse friction against bodies where it cannot act (KnitError, exit 2).
+
+    Friction is lagged (``knitfem.contact.colliders``): a dissipative
+    potential D(ε; ε⁰) whose force is zero at the step's start ε⁰ and grows
+    as the step moves the yarn along the body. The symplectic integrator
+    evaluates its forces at ε⁰, so it would see none; a static solve is one
+    step from a knit not yet touching the body (λ = 0 at ε⁰), so friction
+    would never hold it."""
+    from knitfem.errors import KnitError
+
+    if not (fabric.friction and fabric.bodies):
+        return
+    if static:
+        raise KnitError(f"-knit_static has no friction against bodies (-knit_friction "
+                        f"{fabric.friction:g}): friction is lagged over the steps of "
+                        "a motion; use -knit_friction 0 for the frictionless "
+                        "equilibrium, or leave out -knit_static to settle the knit "
+                        "with friction")
+    if integrator == "symplectic":
+        raise KnitError(f"-knit_integrator symplectic has no friction against bodies "
+                        f"(-knit_friction {fabric.friction:g}): lagged friction acts "
+                        "only within an implicit step; use -knit_friction 0, or "
+                        "leave out -knit_integrator (its default is implicit)")
 
 
 def explicit_step_fits(system, dt):
