@@ -34,6 +34,7 @@ from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
 from solvers.saddle import WORKSPACE_RAISED
 
+from knitfem.contact.gaps import YarnGaps
 from knitfem.yarn import bspline
 from knitfem.run import interrupts
 from knitfem import io
@@ -41,6 +42,8 @@ from knitfem.run import output
 from knitfem.run.painter import Painter
 
 __all__ = ["Simulation", "SimulationError"]
+
+EV_GAPS = PETSc.Log.Event("knitYarnGaps")
 
 
 def sag_below_supports(fabric, P, low):
@@ -121,10 +124,13 @@ class Simulation:
         self.problem = self.fingerprint()
 
     def rest_measures(self):
-        """Lowest point of the initial (rest) state."""
+        """Lowest point of the initial (rest) state; the yarn gaps' arclength
+        from its centrelines (rank 0)."""
         _, pts = self.geometry()
+        self.gaps = None
         if self.comm.rank == 0:
             self.initial_lowest = float(pts[..., 1].min())
+            self.gaps = YarnGaps(pts, self.full.fabric.radius)
 
     def fingerprint(self):
         """What a checkpoint must agree on to be continued by this run: the
@@ -205,7 +211,8 @@ class Simulation:
     def write_output(self, P):
         """A frame of the time series, and the snapshots now due (every rank
         drops them from its list; rank 0 writes and has their PNGs drawn,
-        every rank learns of an I/O failure)."""
+        measures the frame's yarn gap, and every rank learns of an I/O
+        failure)."""
         due = []
         while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
             due.append(self.snapshots.pop(0))
@@ -214,6 +221,8 @@ class Simulation:
         if self.comm.rank == 0:
             for ts in due:
                 self.draw_snapshot(f"t = {ts:g} s", P)
+            with EV_GAPS:
+                self.gaps.add(self.t, io.centrelines(P))
         self.output.rank0(self._write_frame, P)
 
     def paint(self, name, *args, **kwargs):
@@ -283,7 +292,8 @@ class Simulation:
                      for k, a in state.items()}
         extra = dict(initial_lowest=self.initial_lowest, integrator=state,
                      steps_taken=self.steps_taken, energy=self.energy,
-                     restarted_from=self.restarted_from)
+                     restarted_from=self.restarted_from,
+                     min_yarn_gap=self.gaps and (self.gaps.smallest, self.gaps.time))
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
                                  extra, self.frames) if self.comm.rank == 0 else None
@@ -348,6 +358,8 @@ class Simulation:
             == os.path.realpath(self.out)
         self.series_from = (ckpt.step, "") if same else (
             None, f"continues {path} (step {ckpt.step}, t = {ckpt.t:g} s)")
+        if same and self.gaps and extra.get("min_yarn_gap"):   # the series' frames
+            self.gaps.smallest, self.gaps.time = extra["min_yarn_gap"]
 
     def local_parts(self, saved):
         """This rank's slices of gathered integrator state arrays (the local
@@ -598,6 +610,9 @@ class Simulation:
                 centre = getattr(centre, "centre", getattr(centre, "a", None))
                 if centre is not None:
                     rec["lowest_point_below_collider_centre"] = float(centre[1] - low[1])
+            if self.gaps.time is None:          # no frame (a static solve)
+                self.gaps.add(self.t, pts)
+            rec.update(self.gaps.record())
             rec.update(lowest_point=low.tolist(),
                        drop=float(self.initial_lowest - low[1]),
                        sag=sag_below_supports(self.system.fabric, P, low),
