@@ -96,6 +96,15 @@ def test_friction_where_it_cannot_act_is_a_usage_error(tmp_path, args, said):
     assert len([s for s in out if not s.endswith("rank(s)")]) == 1, out
 
 
+def test_a_run_that_ends_before_its_snapshots_draws_its_final_state(tmp_path):
+    p = knitfem("run", "-knit_scene", "freefall", "-knit_rows", "2", "-knit_cols", "2",
+                "-knit_t_end", "0.01", "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "before the snapshot times (0.4,1,2,3 s): the final state is drawn" \
+        in p.stdout
+    assert (tmp_path / "freefall_t0.01s.png").stat().st_size > 0
+
+
 def test_unknown_command():
     p = knitfem("fly")
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1

@@ -401,6 +401,11 @@ def run(comm):
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
     late = [ts for ts in snapshots if ts > t_end]
+    if late and len(late) == len(snapshots) and not static:
+        PETSc.Sys.Print(f"knitfem run: note: -knit_t_end {t_end:g} ends before the "
+                        f"snapshot times ({','.join(f'{ts:g}' for ts in late)} s): "
+                        f"the final state is drawn instead")
+        snapshots, late = [t_end], []
     if late and PETSc.Options().hasName("knit_snapshots"):
         PETSc.Sys.Print(f"knitfem run: warning: -knit_snapshots "
                         f"{','.join(f'{ts:g}' for ts in late)} after -knit_t_end "
