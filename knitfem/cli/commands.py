@@ -379,6 +379,9 @@ def run(comm):
     load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
+    slow = opts.getReal("slow_step", 5.0, "seconds into a step after which each "
+                        "retry of it gets a progress line (0: every retry; more "
+                        "MUMPS workspace always does) [s]", nonnegative=True)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
     movie = opts.getString("animation", "", "file name of a GIF of every output "
                            "frame, in the output directory (e.g. hanging.gif)")
@@ -464,7 +467,7 @@ def run(comm):
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=VIEWS[scene], problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
-                         painter=painter)
+                         painter=painter, slow_step=slow)
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

@@ -30,6 +30,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from solvers import progress as step_notes
 from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
 from solvers.saddle import WORKSPACE_RAISED
@@ -44,6 +45,8 @@ from knitfem.run.painter import Painter
 __all__ = ["Simulation", "SimulationError"]
 
 EV_GAPS = PETSc.Log.Event("knitYarnGaps")
+EV_OUTPUT = PETSc.Log.Event("knitOutput")
+EV_CHECKPOINT = PETSc.Log.Event("knitCheckpoint")
 
 
 def sag_below_supports(fabric, P, low):
@@ -77,12 +80,16 @@ class Simulation:
         Rank 0: the worker that draws the pictures, started early by the
         caller (its matplotlib import then overlaps the set-up); one is
         started at the first picture otherwise. ``close`` finishes it.
+    slow_step : float
+        Seconds into a step after which its retries get a progress line
+        (``heard``; 0: every retry). More MUMPS workspace always gets one.
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
-                 animation="", energy_growth=0.5, stall_steps=100, painter=None):
+                 animation="", energy_growth=0.5, stall_steps=100, painter=None,
+                 slow_step=5.0):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -95,6 +102,7 @@ class Simulation:
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.energy_growth, self.stall_steps = energy_growth, stall_steps
         self.verbose, self.view, self.animation = verbose, view, animation
+        self.slow_step, self.step_start = slow_step, None
         self.adapt = adapt          # called after every step (knitfem.lod.adapt)
         self.x, self.v = system.start_state(), system.start_state()
         self.v.zeroEntries()
@@ -280,6 +288,10 @@ class Simulation:
     def checkpoint(self):
         """Write a checkpoint of everything needed to continue (collective);
         returns its path."""
+        with EV_CHECKPOINT:
+            return self._checkpoint()
+
+    def _checkpoint(self):
         mpi = self.comm.tompi4py()
         xs = mpi.gather(self.x.getArray(readonly=True), root=0)
         vs = mpi.gather(self.v.getArray(readonly=True), root=0)
@@ -386,6 +398,14 @@ class Simulation:
                 f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
                 f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
 
+    def heard(self, message, always):
+        """A note from inside the step in progress (``solvers.progress``): a
+        line when the step already takes ``slow_step`` seconds, or always."""
+        elapsed = time.perf_counter() - self.step_start
+        if self.verbose and (always or elapsed >= self.slow_step):
+            PETSc.Sys.Print(f"step {self.step_count + 1:6d}  t {self.t:.4f} s  in "
+                            f"progress for {elapsed:.1f} s: {message}", comm=self.comm)
+
     def linear_note(self):
         """`` (N linear solves failed)`` in the progress line, when some did."""
         n = self.stats["linear_failures"]
@@ -481,9 +501,12 @@ class Simulation:
                     stop = min(stop, self.snapshots[0])
                 self.at = (self.step_count + 1, min(stop, self.t + self.integrator.dt))
                 stage.push()
+                self.step_start = time.perf_counter()
+                heard = step_notes.listen(self.heard)
                 try:
                     st = self.integrator.step(self.t, self.x, self.v, stop)
                 finally:
+                    step_notes.listen(heard)
                     stage.pop()
                 self.step_count += 1
                 landed = abs(self.t + st["dt"] - stop) <= tiny
@@ -497,10 +520,11 @@ class Simulation:
                 last = self.t >= t_end - tiny
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
-                    m = self.energies()
-                    self.record_energy(m)
-                    self.progress(m)
-                    self.write_output(self.control_points())
+                    with EV_OUTPUT:
+                        m = self.energies()
+                        self.record_energy(m)
+                        self.progress(m)
+                        self.write_output(self.control_points())
                     self.check_energy()
                 self.check_pace(t_end)
                 self.after_step(signum)
