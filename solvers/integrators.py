@@ -25,6 +25,7 @@ local error estimate.
 import numpy as np
 from petsc4py import PETSc
 
+from .progress import note
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
@@ -35,6 +36,10 @@ __all__ = ["SimulationError", "SymplecticEuler", "NewtonStepper", "BackwardEuler
 
 EV_SOLVE = PETSc.Log.Event("knitSaddleSolve")
 EV_FACTOR = PETSc.Log.Event("knitFactor")
+# a Newton solve of a step, failed ones too (PETSc's own events of a solve
+# that fails inside MUMPS are never ended, so they miss its time)
+EV_NEWTON = PETSc.Log.Event("knitNewtonSolve")
+EV_CONTROL = PETSc.Log.Event("knitStepControl")
 
 
 class SimulationError(RuntimeError):
@@ -419,7 +424,9 @@ class NewtonStepper:
         zu[:] = self.tmp.getArray(readonly=True)
         zl[:] = self.lam.getArray(readonly=True) * self.sigma
         try:
-            solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+            with EV_NEWTON:
+                solve_saddle(lambda: self.snes.solve(None, self.z),
+                             self.snes.getKSP())
         except SolverFailure as err:
             stats["linear_failures"] += 1
             raise SimulationError(f"{err}, h = {h:.3g} s", err.curable) from None
@@ -466,16 +473,21 @@ class NewtonStepper:
                 if not c.newton_failed(h):
                     raise SimulationError(f"{err}; the step fell below "
                                           f"-knit_dt_min {c.dt_min:g} s") from None
+                note(f"retried with dt {c.dt:.2e} s ({err})")
                 continue
-            self.error(h)
-            err = c.norm(self.system.comm, self.e.getArray(readonly=True),
-                         self.xn.getArray(readonly=True),
-                         self.xe.getArray(readonly=True))
-            if c.judge(err, h, self.order, landed):
+            with EV_CONTROL:
+                self.error(h)
+                err = c.norm(self.system.comm, self.e.getArray(readonly=True),
+                             self.xn.getArray(readonly=True),
+                             self.xe.getArray(readonly=True))
+                good = c.judge(err, h, self.order, landed)
+            if good:
                 self._commit(x, v, h)
                 stats["dt"] = h
                 return stats
             stats["rejected"] += 1
+            note(f"retried with dt {c.dt:.2e} s (local error {err:.3g} times the "
+                 f"tolerance at dt {h:.2e} s)")
 
     def _advance(self, x, v, h, depth, stats):
         """A fixed step h, retried as two half steps when Newton fails."""
@@ -488,6 +500,7 @@ class NewtonStepper:
             self.cure_or_stop(err, stats)
             if depth >= self.max_halvings:
                 raise
+            note(f"retried as two steps of {h / 2:.2e} s ({err})")
             for _ in range(2):
                 self._advance(x, v, h / 2, depth + 1, stats)
 

@@ -41,9 +41,18 @@ from knitfem.model.assembly import csr_positions, csr_rows
 
 from .aij import OwnAIJ, storage_pattern, storage_values
 from .libpetsc import Int, library
+from .progress import note
 
 __all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
            "ksp_failure", "failure_or_retry", "pc_failure"]
+
+
+EV_REFACTOR = PETSc.Log.Event("knitMumpsRefactor")
+WORKSPACE = 200
+"""Default MUMPS ICNTL(14), extra workspace (%) over its estimate for delayed
+pivots: the hanging 7×7 (``make demo``) ran out at 100 at t = 0.27 s of its
+3 s and fits at 200. MUMPS allocates it but touches only what it uses: the
+peak RSS of a step of the 50×100 jersey is the same at 100 and 200 (1.10 GB)."""
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -323,7 +332,7 @@ def saddle_ksp(saddle, prefix):
     """A KSP on the saddle point, then the command line. By default a direct
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
-    with 100 % extra workspace for delayed pivots (ICNTL(14)); LAPACK LU for
+    with ``WORKSPACE`` % extra workspace for delayed pivots (ICNTL(14)); LAPACK LU for
     a dense K. With a regularised P (``saddle.delta`` > 0): MUMPS LDLᵀ of P
     without pivoting (a Krylov method chosen by options, at most 30
     iterations, solves K with it).
@@ -351,7 +360,7 @@ def saddle_ksp(saddle, prefix):
     pc.setFactorSolverType(solver)
     options = PETSc.Options(prefix)
     if solver == "mumps" and not options.hasName("mat_mumps_icntl_14"):
-        options.setValue("mat_mumps_icntl_14", 100)
+        options.setValue("mat_mumps_icntl_14", WORKSPACE)
     ksp.setFromOptions()
     # a direct solve raises its factorisation's error at once; a Krylov
     # method leaves its reason (DIVERGED_ITS, DIVERGED_PC_FAILED) for Newton
@@ -510,9 +519,9 @@ def failure_or_retry(ksp, err=None):
     only left in its reason (collective).
 
     MUMPS out of workspace (INFOG(1) = −8 or −9): ICNTL(14) is doubled (up to
-    6400 %), recorded in ``WORKSPACE_RAISED`` (said at the end of a run, not
-    in the middle of its progress lines) and None is returned, the caller
-    then repeats the solve. Anything
+    6400 %), recorded in ``WORKSPACE_RAISED`` (said at the end of a run, and
+    at once by ``progress.note``) and None is returned, the caller then
+    repeats the solve. Anything
     else: the ``SolverFailure`` naming the solver, its reason and the option
     to change.
     """
@@ -524,8 +533,11 @@ def failure_or_retry(ksp, err=None):
             icntl14 = F.getMumpsIcntl(14)
             if icntl14 < MUMPS_WORKSPACE_MAX:
                 new = min(max(2 * icntl14, 100), MUMPS_WORKSPACE_MAX)
-                refactor(ksp, new)
+                with EV_REFACTOR:
+                    refactor(ksp, new)
                 WORKSPACE_RAISED[prefix] = new
+                note(f"MUMPS ran out of workspace (INFOG(1) = {info}): factorising "
+                     f"again with -{prefix}mat_mumps_icntl_14 {new}", always=True)
                 return None
             return SolverFailure(
                 f"MUMPS factorisation out of workspace (INFOG(1) = {info}) even "

@@ -32,6 +32,12 @@ yarn is far above the gravity load, so it takes λ ~ 1e-2 at every iteration
 and |F| falls linearly (the cantilever of q L³/EI = 0.05 did not converge
 in 50 iterations at a fifth of its load).
 
+Where there is no equilibrium near the start (a free knit, or one that slides
+off a body), the flow runs away and, once σ is small, Newton's steps on a
+mechanism grow without bound (|F| reaches 1e38). The solve stops as soon as a
+yarn control point has moved farther than twice the knit's size from where
+the load step started (``reach``), and says there is no equilibrium.
+
 Why a shifted SNES and not TSPSEUDO: the same schedule through PETSc's
 TSPSEUDO (IFunction M ε̇ + F, SNES ksponly, ``-ts_pseudo_increment 1.5``)
 takes as many Jacobians (7, 22, 34 on the cantilever, the catenary, the
@@ -42,6 +48,8 @@ the round-off floor of |F| (EA × machine epsilon) makes either loose or
 unreachable; the SNES keeps the Newton-update test below.
 """
 
+import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from .integrators import SimulationError, _default, step_convergence
@@ -68,6 +76,7 @@ class StaticSolver:
         self.system, self.steps, self.growth = system, steps, growth
         self.length = length or system.fabric.radius
         x0 = system.start_state()
+        self.reach = 2.0 * _size(system, x0)
         K = system.stiffness(x0)
         self.A = K.duplicate(copy=True)
         self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
@@ -90,6 +99,7 @@ class StaticSolver:
         self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
         self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
         self.lumped = system.M.getRowSum()
+        self.start, self.moved = system.M.createVecLeft(), 0.0
         self.load, self.sigma, self.sigma0 = 1.0, 0.0, 0.0
         self.f0 = self.fmin = 0.0
         self.ksp_iterations = 0
@@ -97,12 +107,19 @@ class StaticSolver:
     def _converged(self, system):
         """PETSc's |F| tests, or a Newton update below 1e-9 yarn radii once the
         shift is negligible (σ ≤ 1e-6 σ_0): a shifted step is small because
-        σM is large, not because F is."""
+        σM is large, not because F is; DIVERGED_DTOL when a yarn control point
+        has moved beyond ``reach`` (collective)."""
         base = step_convergence(self.saddle, lambda: 1e-9 * system.fabric.radius,
                                 system)
         R = PETSc.SNES.ConvergedReason
 
         def test(snes, it, norms):
+            if it > 0:
+                self.tmp.getArray()[:] = self.saddle.split(snes.getSolution())[0]
+                self.tmp.axpy(-1.0, self.start)
+                self.moved = system.yarn_move(self.tmp.getArray(readonly=True))
+                if self.moved > self.reach:
+                    return R.DIVERGED_DTOL
             reason = base(snes, it, norms)
             if reason == R.CONVERGED_SNORM_RELATIVE and \
                     self.sigma > 1e-6 * self.sigma0:
@@ -160,6 +177,7 @@ class StaticSolver:
         its = 0
         for i in range(1, self.steps + 1):
             self.load = i / self.steps
+            self.start.getArray()[:] = self.saddle.split(self.z)[0]
             try:
                 solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
             except SolverFailure as err:
@@ -171,6 +189,13 @@ class StaticSolver:
             reason = self.snes.getConvergedReason()
             if monitor:
                 monitor(i, self.load, self.snes)
+            if reason == PETSc.SNES.ConvergedReason.DIVERGED_DTOL:
+                raise SimulationError(
+                    f"static Newton left the start at load {self.load:.3g}: a yarn "
+                    f"control point moved {self.moved:.3g} m, more than twice the "
+                    f"knit's size: there is no equilibrium near this state (a free "
+                    "knit, or one that can slide off a body, has none; hold it, or "
+                    "run the dynamics)")
             if reason < 0:
                 raise SimulationError(
                     f"static Newton did not converge at load {self.load:.3g} "
@@ -187,3 +212,14 @@ class StaticSolver:
         self._unpack(self.z)
         self.x.copy(x)
         return its
+
+
+def _size(system, x):
+    """The diagonal of the bounding box of the coordinates x (collective):
+    the knit's size, or its volume's for a reduced model."""
+    p = x.getArray(readonly=True).reshape(-1, 3)
+    lo = p.min(axis=0) if len(p) else np.full(3, np.inf)
+    hi = p.max(axis=0) if len(p) else np.full(3, -np.inf)
+    span = np.concatenate([-lo, hi])
+    system.comm.tompi4py().Allreduce(MPI.IN_PLACE, span, op=MPI.MAX)
+    return float(np.linalg.norm(span[3:] + span[:3]))

@@ -1,7 +1,9 @@
 """Tests run serial and under mpirun: PETSc is initialised without pytest's
-arguments, and every test ends with garbage collection and a barrier."""
+arguments, every test ends with garbage collection and a barrier, and
+nothing is cached in the user's home."""
 
 import gc
+import os
 import sys
 
 import petsc4py
@@ -10,6 +12,15 @@ petsc4py.init(sys.argv[:1] + ["-skip_petscrc"])
 
 import pytest  # noqa: E402
 from mpi4py import MPI  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="session")
+def cache_in_a_tmp_dir(tmp_path_factory):
+    """XDG_CACHE_HOME (the sampled sets' cache) in the session's tmp dir, one
+    a rank, for the tests and the knitfem processes they start: never the
+    user's ~/.cache."""
+    os.environ["XDG_CACHE_HOME"] = str(
+        tmp_path_factory.mktemp(f"cache{MPI.COMM_WORLD.rank}"))
 
 
 @pytest.fixture(autouse=True)

@@ -98,11 +98,13 @@ def test_barrier_forces_and_tangent_match_finite_differences(pressed):
         assert np.allclose(Kd.getArray(), fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max())
 
 
-def test_jersey_dropped_on_a_floor_rests_on_it():
+def test_jersey_dropped_on_a_floor_stays_above_it_and_rebounds():
     """A free 2 x 2 jersey falls 1 mm onto a plane (backward Euler, 0.1 s):
-    no yarn surface goes into the floor by 0.1 r, and it comes to rest on it
-    and the floor has stopped its fall (free, it would fall at 0.98 m/s and
-    drop 49 mm)."""
+    no yarn surface goes into the floor by 0.1 r, it reaches the floor, and
+    the floor has turned its fall round: 0.1 s after release it is not at
+    rest but rebounding, its mean vertical velocity +0.016 m/s (measured; its
+    fastest point 0.044 m/s), where free it would fall at −0.98 m/s and drop
+    49 mm."""
     from helpers import run
     from solvers.integrators import BackwardEuler
 
@@ -114,7 +116,7 @@ def test_jersey_dropped_on_a_floor_rests_on_it():
     assert model.min_collider_distance(x) > -0.1 * fab.radius
     P = model.yarn_points(x)
     assert P[:, 1].min() < low + 2 * fab.radius          # it reached the floor
-    assert abs(v.getArray().reshape(-1, 3)[:, 1].mean()) < 0.05
+    assert 0.0 < v.getArray().reshape(-1, 3)[:, 1].mean() < 0.05
 
 
 @pytest.mark.parametrize("body", [Sphere(np.array([0.0, 0.01, 0.0]), 0.004),

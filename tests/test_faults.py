@@ -43,11 +43,11 @@ def knitfem(*args):
 
 
 @contextlib.contextmanager
-def started(*args, mpirun=()):
+def started(*args, mpirun=(), sigkill_s="5"):
     """A run in the background; killed if the test ends before it does."""
     # mpirun sends SIGTERM this many seconds after it is signalled, SIGKILL
-    # as long again later
-    e = dict(env(), OMPI_MCA_odls_base_sigkill_timeout="5")
+    # as long again later (Open MPI's default: 1 s)
+    e = dict(env(), OMPI_MCA_odls_base_sigkill_timeout=sigkill_s)
     p = subprocess.Popen(list(mpirun) + command(*args), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, env=e)
     try:
@@ -160,11 +160,26 @@ def test_output_directory_not_writable(tmp_path):
     blocker.write_text("not a directory")
     line = one_line(knitfem("-o", str(blocker / "out")), 2)
     assert line.startswith("knitfem run: error: -o ")
-    if os.geteuid() != 0:                    # root writes through permissions
-        ro = tmp_path / "ro"
-        ro.mkdir()
-        ro.chmod(0o555)
+    with read_only(tmp_path / "ro") as ro:
         assert "-o" in one_line(knitfem("-o", str(ro)), 2)
+
+
+@contextlib.contextmanager
+def read_only(d):
+    """An empty directory ``d`` nobody can write to: mode 555, or for root,
+    whom modes do not stop, a read-only tmpfs mounted on it."""
+    d.mkdir()
+    if os.geteuid() != 0:
+        d.chmod(0o555)
+        yield d
+        return
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(d)],
+                      capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield d
+    finally:
+        subprocess.run(["umount", str(d)])
 
 
 @pytest.fixture(scope="module")
@@ -295,6 +310,26 @@ def test_sigterm_under_mpirun_all_ranks_stop_at_one_step(tmp_path):
     rec = json.loads((tmp_path / "summary.json").read_text())
     assert rec["status"] == "interrupted by SIGTERM" and rec["ranks"] == 2
     assert checkpoint(tmp_path / "checkpoint.h5")[2] == rec["steps"]
+
+
+@pytest.mark.skipif(shutil.which("mpirun") is None, reason="no mpirun")
+def test_ctrl_c_under_mpirun_says_so_and_records_it(tmp_path):
+    """Ctrl-C to mpirun, with Open MPI's default second before SIGKILL, twice:
+    every time the serial run's one line with the restart command, and the
+    summary marked interrupted (mpirun's exit status is its own)."""
+    for k in range(2):
+        d = tmp_path / str(k)
+        with started("-knit_rows", "7", "-knit_cols", "7", "-knit_dt", "3e-3",
+                     "-knit_t_end", "10", "-knit_output_every", "1", "-o", str(d),
+                     mpirun=("mpirun", "-n", "2"),
+                     sigkill_s="1") as p:
+            wait_for(d / "yarns" / "00000003.h5")
+            finish(p, signal.SIGINT)
+        said = [s for s in p.stdout.splitlines() if "continue with: " in s]
+        assert len(said) == 1, p.stdout + p.stderr
+        assert said[0].startswith("knitfem run: interrupted by SIGTERM at step ")
+        rec = json.loads((d / "summary.json").read_text())
+        assert rec["status"] == "interrupted by SIGTERM" and rec["ranks"] == 2
 
 
 @contextlib.contextmanager

@@ -161,6 +161,21 @@ def test_a_zero_pivot_is_named_and_not_curable(model, options):
     saddle.destroy()
 
 
+def test_default_workspace_is_what_the_demo_needs(model):
+    """MUMPS gets 200 % extra workspace unless told otherwise: the demo's
+    hanging 7x7 ran out at 100 (t = 0.27 s of 3 s) and fits at 200."""
+    from solvers.saddle import WORKSPACE
+
+    saddle = SaddlePoint(jacobian(model, scale=1.01), model.C)
+    ksp = saddle_ksp(saddle, "t_default_ws_")
+    ksp.setUp()
+    assert WORKSPACE == 200
+    assert ksp.getPC().getFactorMatrix().getMumpsIcntl(14) == WORKSPACE
+    PETSc.Options().delValue("t_default_ws_mat_mumps_icntl_14")
+    ksp.destroy()
+    saddle.destroy()
+
+
 @pytest.mark.skipif(COMM.size > 1, reason="the 2-rank factorisation of this "
                     "saddle point fits its estimate")
 def test_workspace_retried(model, options):
@@ -168,13 +183,23 @@ def test_workspace_retried(model, options):
     saddle point; the solve is repeated with more and succeeds. (Last: PETSc
     3.18's KSPSolve leaves its nesting level raised after an error, and then
     no longer raises DIVERGED_ITS.)"""
+    from solvers import progress
+
     options(t_ws_mat_mumps_icntl_14=0)
     saddle = SaddlePoint(jacobian(model, scale=1.01), model.C)
     ksp = saddle_ksp(saddle, "t_ws_")
-    _, res = solve(saddle, ksp)
+    heard = []
+    before = progress.listen(lambda message, always: heard.append((message, always)))
+    try:
+        _, res = solve(saddle, ksp)
+    finally:
+        progress.listen(before)
     assert res < 1e-6
     assert PETSc.Options().getInt("t_ws_mat_mumps_icntl_14") >= 100
     assert WORKSPACE_RAISED["t_ws_"] >= 100         # said at the run's end
+    assert heard and all(always for _, always in heard)     # and at once
+    raised = WORKSPACE_RAISED["t_ws_"]
+    assert heard[-1][0].endswith(f"-t_ws_mat_mumps_icntl_14 {raised}")
     saddle.destroy()
 
 

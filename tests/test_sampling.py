@@ -3,6 +3,8 @@ its tangent the Hessian of its energy, force-free at rest and under rigid
 motions, trained to its tolerance, cached under a key that changes with
 the problem."""
 
+import os
+
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -133,6 +135,27 @@ def test_training_meets_its_tolerance_and_caches(tmp_path, monkeypatch):
     assert sampling.cache_key(other, emb, 1e-2) != sampling.cache_key(full, emb, 1e-2)
     for m in (other, red, full):
         m.destroy()
+
+
+def test_the_cache_is_keyed_by_the_training_code_and_states(pair, monkeypatch):
+    """A change of the code that trains a set, or of its training states
+    (the seed), is another key: no stale set is read after an edit."""
+    full, red = pair
+    key = sampling.cache_key(full, red.embedding, 1e-2)
+    assert sampling.cache_key(full, red.embedding, 1e-2, seed=1) != key
+    monkeypatch.setattr(sampling, "TRAINED_BY", sampling.TRAINED_BY[:-1])
+    sampling.training_code.cache_clear()
+    try:
+        assert sampling.cache_key(full, red.embedding, 1e-2) != key
+    finally:
+        monkeypatch.undo()
+        sampling.training_code.cache_clear()
+    assert sampling.cache_key(full, red.embedding, 1e-2) == key
+
+
+def test_tests_cache_outside_the_users_home():
+    home = os.path.realpath(os.path.expanduser("~"))
+    assert not os.path.realpath(sampling.cache_dir()).startswith(home + os.sep)
 
 
 def test_sampled_forces_derive_from_the_sampled_energy(pair):

@@ -10,6 +10,7 @@ Hessians against central differences of the gradient, for both kernels
 import numpy as np
 import pytest
 
+from knitfem.yarn import bspline
 from knitfem.yarn.kernels import KINDS, yarn_kernels
 from knitfem.yarn.elements import YarnElements, chain_rule, stretch_terms
 
@@ -108,6 +109,30 @@ def test_straight_yarn_total_mass():
     assert np.isclose(row_sums.sum(), RHO * L, rtol=1e-12)
     # the end control points carry less mass than the interior ones
     assert row_sums[0] < row_sums[1] < row_sums[2] < row_sums[3]
+
+
+@pytest.mark.parametrize("nseg,closed", [(1, False), (2, False), (3, False),
+                                         (40, False), (8, True), (9, True)])
+def test_mass_is_positive_definite_from_the_fewest_gauss_points(nseg, closed):
+    """The assembled scalar mass m is positive definite for every accepted
+    Gauss point count and singular for one fewer (but on an odd closed yarn,
+    where one point a segment happens to suffice)."""
+    fewest = bspline.fewest_gauss_points(nseg, closed)
+    ncp = nseg if closed else nseg + 3
+    X, conn = helix(ncp, 0), bspline.span(np.arange(nseg), ncp, closed)
+
+    def conditioning(nq):
+        m = np.zeros((ncp, ncp))
+        np.add.at(m, (conn[:, :, None], conn[:, None, :]),
+                  YarnElements(X, conn, RHO, EA, EI, nq=nq).mass_elements())
+        lam = np.linalg.eigvalsh(m)
+        return lam[0] / lam[-1]
+
+    # measured: λ_min/λ_max ≥ 9.6e-5 (three segments, two points), and
+    # |λ_min/λ_max| ≤ 1.6e-16 one point fewer
+    assert min(conditioning(nq) for nq in range(fewest, 9)) > 2e-5
+    if not (closed and nseg % 2):
+        assert abs(conditioning(fewest - 1)) < 1e-15
 
 
 # -- strain and curvature ------------------------------------------------------

@@ -259,7 +259,9 @@ def model_options(opts):
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
-    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
+    nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment (at least 2, "
+                     "which keeps the mass matrix positive definite; 4 integrates "
+                     "it exactly)", 2)
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
     volume_options(opts)
@@ -430,6 +432,9 @@ def run(comm):
     load_steps = opts.getInt("load_steps", 1, "load steps of the static solve", 1)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "output frames", 1)
+    slow = opts.getReal("slow_step", 5.0, "seconds into a step after which each "
+                        "retry of it gets a progress line (0: every retry; more "
+                        "MUMPS workspace always does) [s]", nonnegative=True)
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
     movie = opts.getString("animation", "", "file name of a GIF of every output "
                            "frame, in the output directory (e.g. hanging.gif)")
@@ -452,6 +457,11 @@ def run(comm):
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
     late = [ts for ts in snapshots if ts > t_end]
+    if late and len(late) == len(snapshots) and not static:
+        PETSc.Sys.Print(f"knitfem run: note: -knit_t_end {t_end:g} ends before the "
+                        f"snapshot times ({','.join(f'{ts:g}' for ts in late)} s): "
+                        f"the final state is drawn instead")
+        snapshots, late = [t_end], []
     if late and PETSc.Options().hasName("knit_snapshots"):
         PETSc.Sys.Print(f"knitfem run: warning: -knit_snapshots "
                         f"{','.join(f'{ts:g}' for ts in late)} after -knit_t_end "
@@ -479,6 +489,7 @@ def run(comm):
             raise KnitError(str(err)) from None
         fabric.bodies = fabric.bodies + bodies
         fabric.friction = friction
+        friction_fits(fabric, static, PETSc.Options().getString("knit_integrator", ""))
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
         from knitfem.lod.reduced import sampling_note
@@ -514,7 +525,7 @@ def run(comm):
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
-                         painter=painter)
+                         painter=painter, slow_step=slow)
         if restart:
             sim.restart(restart, change)
         if adapt is not None:
@@ -556,8 +567,35 @@ def simulate(sim, t_end, command, out):
                         f"{out.path})")
         return 3
     except Interrupted as stop:
-        PETSc.Sys.Print(f"knitfem {command}: {stop}")
+        if not stop.said:
+            PETSc.Sys.Print(f"knitfem {command}: {stop}")
         return stop.code
+
+
+def friction_fits(fabric, static, integrator):
+    """Refuse friction against bodies where it cannot act (KnitError, exit 2).
+
+    Friction is lagged (``knitfem.contact.colliders``): a dissipative
+    potential D(ε; ε⁰) whose force is zero at the step's start ε⁰ and grows
+    as the step moves the yarn along the body. The symplectic integrator
+    evaluates its forces at ε⁰, so it would see none; a static solve is one
+    step from a knit not yet touching the body (λ = 0 at ε⁰), so friction
+    would never hold it."""
+    from knitfem.errors import KnitError
+
+    if not (fabric.friction and fabric.bodies):
+        return
+    if static:
+        raise KnitError(f"-knit_static has no friction against bodies (-knit_friction "
+                        f"{fabric.friction:g}): friction is lagged over the steps of "
+                        "a motion; use -knit_friction 0 for the frictionless "
+                        "equilibrium, or leave out -knit_static to settle the knit "
+                        "with friction")
+    if integrator == "symplectic":
+        raise KnitError(f"-knit_integrator symplectic has no friction against bodies "
+                        f"(-knit_friction {fabric.friction:g}): lagged friction acts "
+                        "only within an implicit step; use -knit_friction 0, or "
+                        "leave out -knit_integrator (its default is implicit)")
 
 
 def explicit_step_fits(system, dt):

@@ -6,7 +6,8 @@ that it prints our options only and the command stops before it runs. Every
 failure ends the program with one line on stderr and an exit status: 2 bad
 input (an option's value, an option of ours that no command declares, a
 checkpoint that does not match, an output directory in use or not
-writable), 3 a simulation that failed, 130 and 143 SIGINT and SIGTERM. A
+writable), 3 a simulation that failed, 130 and 143 SIGINT and SIGTERM (under
+``mpirun`` the exit status is Open MPI's: see ``knitfem.run.interrupts``). A
 PETSc option that nothing read gets a warning at the end.
 ``KNITFEM_TRACEBACK=1`` shows the traceback of an unexpected error.
 """
@@ -51,13 +52,22 @@ def main(argv=None):
     wants_help = any(a in HELP for a in rest)
     from knitfem.run.interrupts import Interrupted, install
 
-    install()
+    install(say=lambda line: _say(f"knitfem {command}: {line}"))
     try:
         petsc4py.init([argv[0]] + [a for a in rest if a not in HELP])
         return _command(command, wants_help)
     except Interrupted as stop:
-        complain(f"knitfem {command}: {stop} during set-up, before any step")
+        if not stop.said:
+            complain(f"knitfem {command}: {stop} during set-up, before any step")
         return stop.code
+
+
+def _say(line):
+    """One line on stdout from the first rank, flushed (PETSc is initialised)."""
+    from petsc4py import PETSc
+
+    PETSc.Sys.Print(line)
+    sys.stdout.flush()
 
 
 def _command(command, wants_help):

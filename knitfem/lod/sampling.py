@@ -32,10 +32,13 @@ its own yarns' sum, so the sum over ranks is fitted too.
 The set is cached in ``$XDG_CACHE_HOME/knitfem/sampling`` (default
 ``~/.cache``) under the SHA-256 of everything it depends on: the rank's rest
 control points and elements, the volume's control points, EA, EI, the
-quadrature, the tolerance and this module's ``VERSION``; any change is
-another file, so no cached set can be stale.
+quadrature, the tolerance, the training states and seed, and the source of
+the code that trains it (``TRAINED_BY``: this module, the yarn elements and
+their kernels, the volume's deformations); any change is another file, so
+no cached set can be stale.
 """
 
+import functools
 import hashlib
 import os
 import time
@@ -50,9 +53,12 @@ from knitfem.yarn.kernels import yarn_kernels
 from knitfem.lod.grouped_tangent import GroupedTangent
 from knitfem.yarn.elements import YarnElements
 
-__all__ = ["SampledElements", "sampled_set", "quadrature_set", "over_ranks", "VERSION"]
+__all__ = ["SampledElements", "sampled_set", "quadrature_set", "over_ranks"]
 
-VERSION = 2
+TRAINED_BY = ("lod/sampling.py", "lod/volume.py", "yarn/elements.py",
+              "yarn/kernels.py", "yarn/_compiled.pyx", "yarn/bspline.py")
+"""The sources, under ``knitfem/``, whose content is part of a set's key (one
+not installed counts as absent)."""
 CANDIDATES = 4000
 DENSE_FILL = 0.2            # Γ̃_S kept dense from this fraction of non-zeros
 
@@ -312,17 +318,35 @@ def train(full, embedding, tol, seed=0, subset=None):
     return cand[S], xi[S], report
 
 
-def cache_key(full, embedding, tol, subset=None):
-    """SHA-256 of everything the rank's sampled set depends on (and the
-    element ``subset`` it is drawn from, when given)."""
+@functools.lru_cache(maxsize=1)
+def training_code():
+    """SHA-256 of the sources in ``TRAINED_BY`` (read once a process)."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for name in TRAINED_BY:
+        try:
+            with open(os.path.join(here, name), "rb") as f:
+                h.update(name.encode() + b"\0" + f.read())
+        except FileNotFoundError:
+            h.update(name.encode() + b"\0absent")
+    return h.hexdigest()
+
+
+def cache_key(full, embedding, tol, subset=None, seed=0):
+    """SHA-256 of everything the rank's sampled set depends on: its problem,
+    the training code and states (``seed``), and the element ``subset`` it
+    is drawn from, when given."""
     el, h = full.elements, hashlib.sha256()
-    for a in (el.X, el.conn, embedding.volume.flat, embedding.cols, embedding.vals):
+    vol, radius = embedding.volume, full.fabric.radius
+    for a in (el.X, el.conn, vol.flat, embedding.cols, embedding.vals,
+              training_states(vol, radius, seed),
+              training_states(vol, radius, seed, held_out=True)):
         h.update(np.ascontiguousarray(a).tobytes())
     if subset is not None:
         h.update(b"subset")
         h.update(np.ascontiguousarray(subset, dtype=np.int64).tobytes())
-    h.update(repr((el.EA, el.EI, len(el.weights), tol, VERSION,
-                   full.kernels.kind)).encode())
+    h.update(repr((el.EA, el.EI, len(el.weights), tol, seed, full.kernels.kind,
+                   training_code())).encode())
     return h.hexdigest()
 
 

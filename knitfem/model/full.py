@@ -32,6 +32,8 @@ from knitfem.contact import constraints as cons
 from knitfem.model.assembly import ElementPattern, YarnLayout, create_aij, kron_identity
 from knitfem.contact.colliders import Barrier
 from knitfem.contact.constraint_assembly import ConstraintAssembly
+from knitfem.errors import KnitError
+from knitfem.yarn import bspline
 from knitfem.yarn.kernels import yarn_kernels
 from knitfem.yarn.elements import YarnElements
 
@@ -86,7 +88,8 @@ def applied_forces(system, v, Q):
 class FullModel:
     """Full model of a ``Fabric``: yarn elements, M, C assembled in PETSc.
 
-    Collective on ``comm``. ``nq`` Gauss points a segment; ``kernels`` one of
+    Collective on ``comm``. ``nq`` Gauss points a segment, at least
+    ``bspline.fewest_gauss_points`` (KnitError otherwise); ``kernels`` one of
     ``kernels.KINDS`` ("compiled" or "numpy"); ``stretch`` False leaves the
     yarns' stretching energy out (for an embedded model that measures it its
     own way, ``shell.ShellStretch``).
@@ -98,6 +101,12 @@ class FullModel:
                  stretch=True):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
+        fewest = bspline.fewest_gauss_points(fabric.nseg, fabric.closed)
+        if nq < fewest:
+            raise KnitError(f"-knit_quadrature {nq} leaves the mass matrix singular "
+                            f"(a yarn of {fabric.nseg} segment(s) needs at least "
+                            f"{fewest} Gauss points a segment): use "
+                            f"-knit_quadrature {fewest} or more")
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
         with EV_ASSEMBLY:
             self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)

@@ -3,13 +3,20 @@
 During set-up a signal ends the run at once (``Interrupted``, exit 128 +
 signal number: 130, 143). While a run steps, it is held: the step finishes,
 every rank learns of it at the step's check (one reduction), and the run
-writes a final checkpoint and its summary before it stops. A second signal
-stops at once (the files stay whole: each is renamed into place).
+writes a final checkpoint, says so in one line (``announce``, at once: the
+run's last pictures may still be drawn after it) and writes its summary before
+it stops. A second signal stops at once (the files stay whole: each is renamed
+into place).
+
+Under ``mpirun`` the signal reaches mpirun, which sends SIGTERM to every rank
+and SIGKILL one second later (Open MPI's ``odls_base_sigkill_timeout``): the
+line and the summary come first so they are out within that second. The exit
+status is then mpirun's own (Open MPI's), not 130 or 143.
 """
 
 import signal
 
-__all__ = ["Interrupted", "install", "hold", "pending"]
+__all__ = ["Interrupted", "install", "hold", "pending", "announce"]
 
 
 class Interrupted(BaseException):
@@ -18,9 +25,10 @@ class Interrupted(BaseException):
     def __init__(self, signum, message=""):
         super().__init__(message or f"interrupted by {signal.Signals(signum).name}")
         self.signum, self.code = signum, 128 + signum
+        self.said = False             # its line is printed (``announce``)
 
 
-_state = {"held": False, "pending": 0}
+_state = {"held": False, "pending": 0, "say": None}
 
 
 def _handler(signum, frame):
@@ -30,8 +38,10 @@ def _handler(signum, frame):
     raise Interrupted(signum)         # set-up, or a second signal: stop now
 
 
-def install():
-    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only)."""
+def install(say=None):
+    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only); ``say``
+    prints an interruption's one line (``announce``)."""
+    _state["say"] = say
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _handler)
 
@@ -44,3 +54,11 @@ def hold(on):
 def pending():
     """The signal number received while held (0: none)."""
     return _state["pending"]
+
+
+def announce(stop):
+    """Print ``stop``'s line now with the ``say`` given to ``install`` (every
+    rank calls it; ``say`` prints once), and mark it said."""
+    if _state["say"] is not None and not stop.said:
+        _state["say"](str(stop))
+        stop.said = True

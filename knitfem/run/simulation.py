@@ -30,10 +30,12 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from solvers import progress as step_notes
 from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
 from solvers.saddle import WORKSPACE_RAISED
 
+from knitfem.contact.gaps import YarnGaps
 from knitfem.yarn import bspline
 from knitfem.run import interrupts
 from knitfem import io
@@ -41,6 +43,10 @@ from knitfem.run import output
 from knitfem.run.painter import Painter
 
 __all__ = ["Simulation", "SimulationError"]
+
+EV_GAPS = PETSc.Log.Event("knitYarnGaps")
+EV_OUTPUT = PETSc.Log.Event("knitOutput")
+EV_CHECKPOINT = PETSc.Log.Event("knitCheckpoint")
 
 
 def sag_below_supports(fabric, P, low):
@@ -79,13 +85,16 @@ class Simulation:
     settled : callable or None
         Of the energies of an output frame (``energies``): True ends the run
         there, before t_end (a relaxation that has come to rest).
+    slow_step : float
+        Seconds into a step after which its retries get a progress line
+        (``heard``; 0: every retry). More MUMPS workspace always gets one.
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
                  animation="", energy_growth=0.5, stall_steps=100, painter=None,
-                 series="yarns.xdmf", settled=None):
+                 series="yarns.xdmf", settled=None, slow_step=5.0):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -98,6 +107,7 @@ class Simulation:
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.energy_growth, self.stall_steps = energy_growth, stall_steps
         self.verbose, self.view, self.animation = verbose, view, animation
+        self.slow_step, self.step_start = slow_step, None
         self.adapt = adapt          # called after every step (knitfem.lod.adapt)
         self.series_name, self.settled = series, settled
         self.x, self.v = system.start_state(), system.start_state()
@@ -128,10 +138,13 @@ class Simulation:
         self.problem = self.fingerprint()
 
     def rest_measures(self):
-        """Lowest point of the initial (rest) state."""
+        """Lowest point of the initial (rest) state; the yarn gaps' arclength
+        from its centrelines (rank 0)."""
         _, pts = self.geometry()
+        self.gaps = None
         if self.comm.rank == 0:
             self.initial_lowest = float(pts[..., 1].min())
+            self.gaps = YarnGaps(pts, self.full.fabric.radius)
 
     def fingerprint(self):
         """What a checkpoint must agree on to be continued by this run: the
@@ -212,7 +225,8 @@ class Simulation:
     def write_output(self, P):
         """A frame of the time series, and the snapshots now due (every rank
         drops them from its list; rank 0 writes and has their PNGs drawn,
-        every rank learns of an I/O failure)."""
+        measures the frame's yarn gap, and every rank learns of an I/O
+        failure)."""
         due = []
         while self.snapshots and self.t >= self.snapshots[0] - 1e-9:
             due.append(self.snapshots.pop(0))
@@ -221,6 +235,8 @@ class Simulation:
         if self.comm.rank == 0:
             for ts in due:
                 self.draw_snapshot(f"t = {ts:g} s", P)
+            with EV_GAPS:
+                self.gaps.add(self.t, io.centrelines(P))
         self.output.rank0(self._write_frame, P)
 
     def paint(self, name, *args, **kwargs):
@@ -278,6 +294,10 @@ class Simulation:
     def checkpoint(self):
         """Write a checkpoint of everything needed to continue (collective);
         returns its path."""
+        with EV_CHECKPOINT:
+            return self._checkpoint()
+
+    def _checkpoint(self):
         mpi = self.comm.tompi4py()
         xs = mpi.gather(self.x.getArray(readonly=True), root=0)
         vs = mpi.gather(self.v.getArray(readonly=True), root=0)
@@ -290,7 +310,8 @@ class Simulation:
                      for k, a in state.items()}
         extra = dict(initial_lowest=self.initial_lowest, integrator=state,
                      steps_taken=self.steps_taken, energy=self.energy,
-                     restarted_from=self.restarted_from)
+                     restarted_from=self.restarted_from,
+                     min_yarn_gap=self.gaps and (self.gaps.smallest, self.gaps.time))
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
                                  extra, self.frames) if self.comm.rank == 0 else None
@@ -355,6 +376,8 @@ class Simulation:
             == os.path.realpath(self.out)
         self.series_from = (ckpt.step, "") if same else (
             None, f"continues {path} (step {ckpt.step}, t = {ckpt.t:g} s)")
+        if same and self.gaps and extra.get("min_yarn_gap"):   # the series' frames
+            self.gaps.smallest, self.gaps.time = extra["min_yarn_gap"]
 
     def local_parts(self, saved):
         """This rank's slices of gathered integrator state arrays (the local
@@ -380,6 +403,14 @@ class Simulation:
                 f"{m['kinetic_energy']:.3e} J  E_el {m['elastic_energy']:.3e} J  "
                 f"|Cx-d| {m['max_constraint_violation']:.1e} m  elapsed "
                 f"{elapsed:.1f} s, left ~{left:.1f} s", comm=self.comm)
+
+    def heard(self, message, always):
+        """A note from inside the step in progress (``solvers.progress``): a
+        line when the step already takes ``slow_step`` seconds, or always."""
+        elapsed = time.perf_counter() - self.step_start
+        if self.verbose and (always or elapsed >= self.slow_step):
+            PETSc.Sys.Print(f"step {self.step_count + 1:6d}  t {self.t:.4f} s  in "
+                            f"progress for {elapsed:.1f} s: {message}", comm=self.comm)
 
     def linear_note(self):
         """`` (N linear solves failed)`` in the progress line, when some did."""
@@ -410,9 +441,9 @@ class Simulation:
         return int(signum)
 
     def after_step(self, signum):
-        """Checkpoint when due; on a stop signal a final checkpoint, the
-        summary marked interrupted, and ``Interrupted`` with the restart
-        command (collective)."""
+        """Checkpoint when due; on a stop signal a final checkpoint, its line
+        with the restart command (``interrupts.announce``), the summary marked
+        interrupted, and ``Interrupted`` (collective)."""
         due = self.checkpoint_every and self.step_count % self.checkpoint_every == 0
         if self.output is not None and (due or signum):
             self.checkpoint()
@@ -420,15 +451,19 @@ class Simulation:
             return
         name = interrupts.Interrupted(signum).args[0].split()[-1]
         self.wall_time = time.perf_counter() - self.start
-        self.write_summary(self.summary(), f"interrupted by {name}")
         where = f"step {self.step_count}, t = {self.t:.6g} s"
         if self.output is None:
-            raise interrupts.Interrupted(signum, f"interrupted by {name} at {where}; "
-                                         "no output directory, nothing to restart")
-        path = self.last_checkpoint[0]
-        raise interrupts.Interrupted(
-            signum, f"interrupted by {name} at {where}; checkpoint {path}; continue "
-            f"with: {output.restart_command(self.command, path, self.comm.size)}")
+            stop = interrupts.Interrupted(signum, f"interrupted by {name} at {where}; "
+                                          "no output directory, nothing to restart")
+        else:
+            path = self.last_checkpoint[0]
+            stop = interrupts.Interrupted(
+                signum, f"interrupted by {name} at {where}; checkpoint {path}; "
+                f"continue with: "
+                f"{output.restart_command(self.command, path, self.comm.size)}")
+        interrupts.announce(stop)            # before mpirun's SIGKILL can come
+        self.write_summary(self.summary(), f"interrupted by {name}")
+        raise stop
 
     def solver_prefix(self):
         for name in ("snes", "ksp"):
@@ -472,9 +507,12 @@ class Simulation:
                     stop = min(stop, self.snapshots[0])
                 self.at = (self.step_count + 1, min(stop, self.t + self.integrator.dt))
                 stage.push()
+                self.step_start = time.perf_counter()
+                heard = step_notes.listen(self.heard)
                 try:
                     st = self.integrator.step(self.t, self.x, self.v, stop)
                 finally:
+                    step_notes.listen(heard)
                     stage.pop()
                 self.step_count += 1
                 landed = abs(self.t + st["dt"] - stop) <= tiny
@@ -488,10 +526,11 @@ class Simulation:
                 last = self.t >= t_end - tiny
                 snap = self.snapshots and self.t >= self.snapshots[0] - 1e-9
                 if self.step_count % self.output_every == 0 or last or snap:
-                    m = self.energies()
-                    self.record_energy(m)
-                    self.progress(m)
-                    self.write_output(self.control_points())
+                    with EV_OUTPUT:
+                        m = self.energies()
+                        self.record_energy(m)
+                        self.progress(m)
+                        self.write_output(self.control_points())
                     self.check_energy()
                     if self.settled is not None and self.settled(m):
                         break
@@ -603,6 +642,9 @@ class Simulation:
                 centre = getattr(centre, "centre", getattr(centre, "a", None))
                 if centre is not None:
                     rec["lowest_point_below_collider_centre"] = float(centre[1] - low[1])
+            if self.gaps.time is None:          # no frame (a static solve)
+                self.gaps.add(self.t, pts)
+            rec.update(self.gaps.record())
             rec.update(lowest_point=low.tolist(),
                        drop=float(self.initial_lowest - low[1]),
                        sag=sag_below_supports(self.system.fabric, P, low),

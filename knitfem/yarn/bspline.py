@@ -58,6 +58,21 @@ def gauss(nq):
     return 0.5 * (x + 1.0), 0.5 * w
 
 
+def fewest_gauss_points(nseg, closed=False):
+    """The fewest Gauss points a segment that keep a yarn's mass matrix
+    m = Σ_{e,q} w_q ρ |X'| b(u_q) b(u_q)ᵀ positive definite.
+
+    m is singular exactly when a nonzero spline vanishes at every Gauss point.
+    An open curve of n segments has n + 3 coefficients, so it needs
+    nq·n ≥ n + 3 points; Gauss points interlace the B-splines' supports
+    (Schoenberg–Whitney), so that is enough: nq ≥ 1 + ⌈3/n⌉ (4 for one
+    segment, 3 for two, else 2). A closed curve of n segments has n, but at
+    one point a segment, the midpoint values (1, 23, 23, 1)/48 of the
+    alternating spline cancel when n is even: nq ≥ 2.
+    """
+    return 2 if closed else 1 + -(-3 // max(int(nseg), 1))
+
+
 def segments(ncp, closed=False):
     """Segments of a curve of ncp control points: ncp − 3, or ncp if closed."""
     return ncp if closed else ncp - 3
