@@ -457,10 +457,11 @@ def run(comm):
         raise KnitError(f"-knit_snapshots {snaps!r}: expected comma-separated "
                         "times in seconds") from None
     late = [ts for ts in snapshots if ts > t_end]
+    short = ""                           # said once the model is built
     if late and len(late) == len(snapshots) and not static:
-        PETSc.Sys.Print(f"knitfem run: note: -knit_t_end {t_end:g} ends before the "
-                        f"snapshot times ({','.join(f'{ts:g}' for ts in late)} s): "
-                        f"the final state is drawn instead")
+        short = (f"knitfem run: note: -knit_t_end {t_end:g} ends before the "
+                 f"snapshot times ({','.join(f'{ts:g}' for ts in late)} s): "
+                 f"the final state is drawn instead")
         snapshots, late = [t_end], []
     if late and PETSc.Options().hasName("knit_snapshots"):
         PETSc.Sys.Print(f"knitfem run: warning: -knit_snapshots "
@@ -498,6 +499,8 @@ def run(comm):
                         f"{sampling_note(system)}, {n} coordinates "
                         f"+ {k} constraints (contacts, fixed points) = {n + k} "
                         f"unknowns, {comm.size} rank(s)")
+        if short:
+            PETSc.Sys.Print(short)
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):
