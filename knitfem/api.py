@@ -21,12 +21,12 @@ All calls are collective on the system's communicator.
 
 from petsc4py import PETSc
 
-from knitfem.cli.commands import (FRICTION, VIEWS, build_system, colliders_from_options,
+from knitfem.cli.commands import (build_system, colliders_from_options,
                                   integrator_from_options, jersey_from_options,
-                                  material_from_options, pose_from_options,
-                                  pull_from_options)
+                                  material_from_options, rest_from_options,
+                                  start_rotation_from_options)
 from knitfem.cli.options import KnitOptions
-from knitfem.cli.scenes import make_fabric
+from knitfem.cli.scenes import SCENES, make_fabric
 from knitfem.io import centrelines as sampled_centrelines
 from knitfem.knit.pattern import jersey_fabric
 from knitfem.run.simulation import Simulation
@@ -97,35 +97,36 @@ def jersey(hold=None, **options):
     return jersey_fabric(knitted, hold)
 
 
-def scene(name="hanging", length=0.1, span=0.08, segments=40, friction=None,
-          **options):
+def scene(name="hanging", friction=None, **options):
     """The ``Fabric`` of one of ``knitfem run``'s scenes, as -knit_scene sets it up.
 
     Parameters
     ----------
     name : str
-        hanging, pulled, freefall, drape, catenary or cantilever.
-    length, span, segments
-        The single yarn of the catenary and the cantilever: length [m],
-        distance between the pins [m], B-spline segments.
+        One of ``knitfem.cli.scenes.SCENES``: hanging, pulled, freefall,
+        drape, catenary or cantilever.
     friction : float
-        Coulomb μ against the bodies (drape: 0.5, others 0).
+        Coulomb μ against the bodies (the scene's default: drape 0.5,
+        others 0).
     **options
-        The jersey's ``rows``, ``cols``, ``radius``, ``shape``; the pose's
-        ``tilt`` (90°: a hanging knit starts horizontal), ``hold``,
-        ``start_rotation``; the pulled scene's ``pull_stitch``,
-        ``pull_force``; ``collider`` (bodies, e.g. "sphere:0,0,0,0.01").
+        The jersey's ``rows``, ``cols``, ``radius``, ``shape`` and ``rest``
+        (a relaxed.h5 of ``knitfem relax``); the scene's own options (the
+        hanging scene's ``tilt`` (90°: it starts horizontal) and ``hold``, the
+        pulled scene's ``pull_stitch`` and ``pull_force``, the single yarn's
+        ``length``, ``segments`` and ``span``); ``start_rotation``;
+        ``collider`` (bodies, e.g. "sphere:0,0,0,0.01").
     """
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}: use one of {', '.join(SCENES)}")
     opts = GivenOptions(**options)
-    knitted = jersey_from_options(opts)
-    tilt, hold, turn = pose_from_options(opts)
-    pull = pull_from_options(opts, knitted)
+    knitted = rest_from_options(opts, jersey_from_options(opts))
+    params = SCENES[name].declare(opts, knitted)
+    turn = start_rotation_from_options(opts)
     bodies = colliders_from_options(opts)
     opts.check("scene")
-    fabric = make_fabric(name, knitted, length, span, segments, knitted.radius, tilt,
-                         pull, hold, turn)
+    fabric = make_fabric(name, knitted, turn, **params)
     fabric.bodies = fabric.bodies + bodies
-    fabric.friction = FRICTION.get(name, 0.0) if friction is None else friction
+    fabric.friction = SCENES[name].friction if friction is None else friction
     return fabric
 
 
@@ -133,13 +134,13 @@ def material(scene=None, **options):
     """The yarn ``Material`` (SI units) of -knit_rho, -knit_EA, -knit_EI,
     -knit_gravity and -knit_damping.
 
-    ``scene`` picks the scene's default damping c_d (hanging: 1.4 1/s of
-    air drag, Q_d = −c_d M ε̇; else 0); keywords ``rho`` (2.5e-4 kg/m),
-    ``EA`` (250 N), ``EI`` (1.5e-8 N m²), ``gravity`` (9.81 m/s²) and
-    ``damping`` override it.
+    ``scene`` (a name) picks the scene's default damping c_d (hanging: 1.4
+    1/s of air drag, Q_d = −c_d M ε̇; else 0); keywords ``rho`` (2.5e-4
+    kg/m), ``EA`` (250 N), ``EI`` (1.5e-8 N m²), ``gravity`` (9.81 m/s²)
+    and ``damping`` override it.
     """
     opts = GivenOptions(**options)
-    value = material_from_options(opts, scene)
+    value = material_from_options(opts, SCENES[scene] if scene else None)
     opts.check("material")
     return value
 
@@ -230,7 +231,7 @@ def simulation(system, stepper=None, out=None, scene="", snapshots=SNAPSHOTS,
     ``run(t_end)`` returns the summary (a dict, as summary.json);
     ``energies()`` the kinetic, elastic and gravity energy now.
     """
-    kwargs.setdefault("view", VIEWS.get(scene, "oblique"))
+    kwargs.setdefault("view", SCENES[scene].view if scene in SCENES else "oblique")
     return Simulation(system, stepper or integrator(system), out=out, scene=scene,
                       snapshots=snapshots, **kwargs)
 
