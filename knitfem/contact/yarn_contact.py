@@ -33,16 +33,17 @@ barrier there would fight the constraint. d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
 
-Broad phase: the toolkit's hash grid over the edges' boxes. Step filter:
-``step_fraction``, a conservative bound on the straight path of the
-samples between two states (the toolkit's Tight Inclusion CCD with a
-minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359 samples,
-the bound a few ms), so a Newton update scaled by it never brings two yarn
-surfaces into contact.
+Broad phase: the toolkit's LBVH over the edges' boxes. Step filter:
+``step_fraction``, a conservative bound per pair of edges on the straight
+path of the samples between two states (candidates from a k-d tree of the
+edges' midpoints, segment distances vectorised; the toolkit's Tight
+Inclusion CCD with a minimum distance took 0.1–0.2 s a call on the 7×7
+jersey's 2 359 samples), so a Newton update scaled by it never brings two
+yarn surfaces into contact.
 
 The tangent couples control points of different yarns. ``pairs`` lists
-the segment pairs (8 control points) whose samples are within the band
-plus a margin of each other: a pattern that stays valid while the active
+the segment pairs (8 control points) of the edges that may touch and are
+within the band plus a margin of each other: a pattern that stays valid while the active
 pairs are among them (``fits``); entries outside it are dropped from the
 tangent (counted in ``missed``) until the model rebuilds its pattern.
 
@@ -57,11 +58,27 @@ from scipy.spatial import cKDTree
 
 from knitfem.yarn import bspline
 
-__all__ = ["YarnContact"]
+__all__ = ["YarnContact", "segment_distance"]
 
 
 def _fortran(a):
     return np.asfortranarray(a, dtype=float)
+
+
+def segment_distance(p0, p1, q0, q1):
+    """Distance of the segments p0p1 and q0q1, row-wise (n, 3) each: the
+    closest points p0 + s d₁, q0 + t d₂ with s, t clamped to [0, 1] (Ericson,
+    Real-Time Collision Detection, 5.1.9; no segment of zero length)."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e = np.sum(d1 * d1, 1), np.sum(d2 * d2, 1)
+    b, c, f = np.sum(d1 * d2, 1), np.sum(d1 * r, 1), np.sum(d2 * r, 1)
+    denom = a * e - b * b
+    s = np.where(denom > 1e-12 * a * e,
+                 np.clip((b * f - c * e) / np.where(denom > 0, denom, 1.0), 0, 1), 0.0)
+    t = (b * s + f) / e
+    s = np.where(t < 0, np.clip(-c / a, 0, 1), np.where(t > 1, np.clip((b - c) / a, 0, 1), s))
+    t = np.clip(t, 0, 1)
+    return np.linalg.norm(r + d1 * s[:, None] - d2 * t[:, None], axis=1)
 
 
 class YarnContact:
@@ -74,7 +91,7 @@ class YarnContact:
     """
 
     def __init__(self, fabric, EI, samples=6, band=0.08, self_reach=8.0,
-                 window=0.5, margin=1.0):
+                 window=0.5, margin=0.3):
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
         self.margin = margin * r
@@ -95,11 +112,8 @@ class YarnContact:
         j = np.arange(m if fabric.closed else m - 1)
         ends = np.stack([j, (j + 1) % m], -1)
         self.edges = (np.arange(nyarn)[:, None, None] * m + ends[None]).reshape(-1, 2)
-        # the segment of every edge, and those of the edges at each sample
+        # the segment of every edge
         self.edge_segment = (np.arange(nyarn)[:, None] * nseg + k[j][None]).ravel()
-        at = np.full((nyarn * m, 2), -1)
-        at[self.edges[:, 0], 0] = at[self.edges[:, 1], 1] = np.arange(len(self.edges))
-        self.sample_edges = self.edge_segment[np.where(at < 0, at[:, ::-1], at)]
         self.nseg_total = nyarn * nseg
         self.sample_yarn = np.repeat(np.arange(nyarn), m)
         self.sample_param = np.tile(k + u, nyarn)
@@ -107,11 +121,11 @@ class YarnContact:
         self.mesh = ipctk.CollisionMesh(_fortran(V), self.edges.astype(np.int32),
                                         np.zeros((0, 3), np.int32))
         edge = np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
-        self.edge_length = edge.max(initial=r)
         half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
         self.run = 2 * half
+        self.per_yarn = m
         self.mesh.can_collide = self._filter(fabric, m, window)
-        self.collisions = ipctk.NormalCollisions()
+        self.collisions, self.built = ipctk.NormalCollisions(), None
         clearance = self._clearance(V, band * r)
         self.dhat = min(band * r, 0.9 * clearance)
         self.kappa = EI / r**2 / (4.77 * self.dmin**2 * self.dhat)
@@ -127,14 +141,17 @@ class YarnContact:
             (base + (i + shift) // self.run).astype(np.int32))
             for shift in (0, self.run // 2)]
         ya, sa, yb, sb = fabric.contacts
-        near = {}
+        keys = [np.zeros(0, np.int64)]
+        nv = len(self.sample_yarn)
         for y1, s1, y2, s2 in zip(ya, sa, yb, sb):
             a = np.flatnonzero((self.sample_yarn == y1)
                                & (np.abs(self.sample_param - s1) < window))
             b = np.flatnonzero((self.sample_yarn == y2)
                                & (np.abs(self.sample_param - s2) < window))
-            lo, hi = np.minimum.outer(a, b).ravel(), np.maximum.outer(a, b).ravel()
-            near.update(dict.fromkeys(zip(lo.tolist(), hi.tolist()), False))
+            keys.append((np.minimum.outer(a, b) * nv + np.maximum.outer(a, b)).ravel())
+        self.excluded = np.unique(np.concatenate(keys))
+        lo, hi = np.divmod(self.excluded, nv)
+        near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
         return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
 
     def _clearance(self, V, probe):
@@ -152,7 +169,11 @@ class YarnContact:
         return self.S @ np.asarray(P).reshape(-1, 3)
 
     def _build(self, V):
-        self.collisions.build(self.mesh, V, self.dhat, self.dmin)
+        """The pairs within the band at the samples V (kept for the next call
+        at the same V: forces and tangent are taken at the same state)."""
+        if self.built is None or not np.array_equal(self.built, V):
+            self.collisions.build(self.mesh, V, self.dhat, self.dmin)
+            self.built = V
         return self.collisions
 
     def energy(self, P):
@@ -185,35 +206,88 @@ class YarnContact:
 
     def step_fraction(self, P0, P1, keep=0.1):
         """The largest t ≤ 1 for which the straight path from P0 towards P1
-        keeps every two yarn surfaces apart, by a conservative bound: an
-        edge's points move by at most δ = max_j |x_j(P1) − x_j(P0)|, so two
-        edges at distance d come no closer than d − 2δt; pairs farther than
-        dmin + 2δ cannot touch, and t = (1 − keep)(d_min − dmin) / 2δ keeps
-        ``keep`` of the closest pair's clearance; pairs are looked for within
-        the margin at most (a clearance beyond it counts as the margin)."""
-        V0, V1 = self.samples(P0), self.samples(P1)
-        move = np.sqrt(np.max(np.sum((V1 - V0) ** 2, axis=1), initial=0.0))
-        if move == 0.0:
+        keeps every two yarn surfaces apart, by a conservative bound per
+        pair of edges: the points of edges e and f move relative to each
+        other by convex combinations of their samples' relative moves, so
+        by at most δ_ef = max_(i∈e, j∈f) |Δx_i − Δx_j|, and edges at
+        distance d come no closer than d − δ_ef t; t = (1 − keep)(d − dmin)
+        / δ_ef over the pairs that may touch keeps ``keep`` of each one's
+        clearance.
+
+        Every pair's clearance is at least c = min(d̂, that of the pairs in
+        the band at P0), and δ_ef ≤ δ_e + δ_f with δ_e the largest move of
+        e's samples less the mean move (a rigid translation is never cut):
+        only pairs with an edge moving by more than (1 − keep) c / 2 are
+        looked at."""
+        V0 = _fortran(self.samples(P0))
+        dV = self.samples(P1) - V0
+        dV -= dV.mean(axis=0)
+        dv = np.sqrt(np.sum(dV * dV, axis=1))
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        de = np.maximum(dv[e0], dv[e1])
+        col = self._build(V0)
+        known = self.dhat if col.empty() else min(
+            self.dhat, np.sqrt(col.compute_minimum_distance(self.mesh, V0)) - self.dmin)
+        movers = np.flatnonzero(de > 0.5 * (1.0 - keep) * known)
+        if not len(movers):
             return 1.0
-        reach = min(2.0 * move, self.margin)
-        gap = min(self.min_distance(P0, reach) - self.dmin, reach)
-        return float(np.clip((1.0 - keep) * gap / (2.0 * move), 0.0, 1.0))
+        mid, half = 0.5 * (V0[e0] + V0[e1]), 0.5 * self.edge_lengths(V0)
+        close = cKDTree(mid[movers]).sparse_distance_matrix(
+            cKDTree(mid), self.dmin + 2 * half.max() + 2 * de.max(),
+            output_type="ndarray")
+        e, f, dist = movers[close["i"]], close["j"], close["v"]
+        near = (e != f) & (dist - half[e] - half[f] < self.dmin + de[e] + de[f])
+        e, f = e[near], f[near]
+        a, b = self.edges[e], self.edges[f]
+        rel = np.max([np.linalg.norm(dV[a[:, p]] - dV[b[:, q]], axis=1)
+                      for p in range(2) for q in range(2)], axis=0)
+        d = segment_distance(V0[a[:, 0]], V0[a[:, 1]], V0[b[:, 0]], V0[b[:, 1]])
+        hit = d < self.dmin + rel
+        hit[hit] &= self.edges_may_touch(e[hit], f[hit])
+        if not hit.any():
+            return 1.0
+        t = (1.0 - keep) * (d[hit] - self.dmin) / rel[hit]
+        return float(np.clip(t.min(), 0.0, 1.0))
+
+    def edge_lengths(self, V):
+        return np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
+
+    def samples_may_touch(self, i, j):
+        """The toolkit's filter (``_filter``) on sample pairs, vectorised."""
+        m, w = self.per_yarn, self.run
+        li, lj = i % m, j % m
+        apart = (li // w != lj // w) & ((li + w // 2) // w != (lj + w // 2) // w)
+        ok = (self.sample_yarn[i] != self.sample_yarn[j]) | apart
+        key = np.minimum(i, j) * len(self.sample_yarn) + np.maximum(i, j)
+        return ok & ~np.isin(key, self.excluded)
+
+    def edges_may_touch(self, e, f):
+        """Edge pairs without a common sample, one of whose sample pairs may
+        touch (as the toolkit's broad phase decides)."""
+        a, b = self.edges[e], self.edges[f]
+        shared = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))
+        may = np.zeros(len(e), bool)
+        for p in range(2):
+            for q in range(2):
+                may |= self.samples_may_touch(a[:, p], b[:, q])
+        return may & ~shared
 
     def segment_pairs(self, P, reach):
-        """Keys a · nseg_total + b (a < b, global segment numbers) of the
-        segment pairs whose samples come within dmin + d̂ + an edge +
-        ``reach`` of each other (sorted, unique): every pair of edges within
-        dmin + d̂ + ``reach`` is among them."""
-        close = cKDTree(self.samples(P)).query_pairs(
-            self.dmin + self.dhat + self.edge_length + reach, output_type="ndarray")
-        i, j = close[:, 0], close[:, 1]
-        keep = (self.sample_yarn[i] != self.sample_yarn[j]) | \
-            (np.abs(i - j) >= self.run // 2)
-        a = np.repeat(self.sample_edges[i[keep]], 2, axis=1).ravel()
-        b = np.tile(self.sample_edges[j[keep]], (1, 2)).ravel()
-        n = self.nseg_total
+        """Keys a · nseg_total + b (a < b, global segment numbers; sorted,
+        unique) of the segments of the edge pairs that may touch and are
+        closer than dmin + d̂ + ``reach``."""
+        V = self.samples(P)
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
+        within = self.dmin + self.dhat + reach
+        close = cKDTree(mid).query_pairs(within + 2 * half.max(), output_type="ndarray")
+        e, f = close[:, 0], close[:, 1]
+        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        hit = d < within
+        hit[hit] &= self.edges_may_touch(e[hit], f[hit])
+        a, b = self.edge_segment[e[hit]], self.edge_segment[f[hit]]
         lo, hi = np.minimum(a, b), np.maximum(a, b)
-        return np.unique((lo * n + hi)[lo != hi])
+        return np.unique((lo * self.nseg_total + hi)[lo != hi])
 
     def pair_points(self, conn):
         """Control points (npairs, 8) of the segment pairs ``pairs``, from
