@@ -263,8 +263,8 @@ class NewtonStepper:
         self.snes.setType("newtonls")
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
-        self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: self.newton_tol / self.kappa, system))
+        self.snes.setConvergenceTest(self._missing_entries(step_convergence(
+            self.saddle, lambda: self.newton_tol / self.kappa, system)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         self.ksp = saddle_ksp(self.saddle, prefix)
@@ -272,6 +272,7 @@ class NewtonStepper:
         self.snes.setFromOptions()
         self.filter = set_step_filter(self.snes, self._step_fraction) \
             if getattr(system, "yarn_contact", None) is not None else None
+        self.missing = None                 # tangent entries missed before a solve
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
         self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
@@ -315,6 +316,21 @@ class NewtonStepper:
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.ksp = saddle_ksp(self.saddle, self.prefix)
         self.snes.setKSP(self.ksp)
+
+    def _missing_entries(self, test):
+        """``test``, but a Newton whose matrix lacked entries of the tangent
+        (``system.tangent_missed``: the yarn contact's pairs left its
+        pattern) stops at once, to be solved again on a new pattern
+        (``_solve``)."""
+        R = PETSc.SNES.ConvergedReason
+
+        def stop_or_test(snes, it, norms):
+            if self.missing is not None and it > 0 and \
+                    self.system.tangent_missed() > self.missing:
+                return R.DIVERGED_MAX_IT
+            return test(snes, it, norms)
+
+        return stop_or_test
 
     def _step_fraction(self, z, y):
         """Newton's update z ← z − y moves ε from ε̂ + κ v by −κ y_v: the
@@ -428,6 +444,10 @@ class NewtonStepper:
             self._newton(h, stats)
             if self.snes.getConvergedReason() > 0:
                 break
+            if self._pattern_left():
+                self._newton(h, stats)
+                if self.snes.getConvergedReason() > 0:
+                    break
         else:
             raise SimulationError(f"Newton did not converge ({reason_name(self.snes)}, "
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
@@ -442,6 +462,7 @@ class NewtonStepper:
         self.predict(h, self.tmp)
         if self.filter is not None:
             self._filter_prediction()
+            self.missing = self.system.tangent_missed()
         self.xn.copy(self.xref)
         zu, zl = self.saddle.split(self.z)
         zu[:] = self.tmp.getArray(readonly=True)
@@ -454,6 +475,17 @@ class NewtonStepper:
         finally:
             stats["newton"] += self.snes.getIterationNumber()
             stats["ksp"] += self.snes.getLinearSolveIterations()
+
+    def _pattern_left(self):
+        """After a failed Newton: if its matrix lacked tangent entries, the
+        system's pattern laid out again at the last iterate and the Newton
+        matrix with it; whether it was."""
+        if self.missing is None or self.system.tangent_missed() <= self.missing:
+            return False
+        self._unpack(self.z)
+        self.system.drop_tangent()
+        self.relayout(self.xe)
+        return True
 
     def _filter_prediction(self):
         """The predicted ε_{n+1} = ε̂ + κ v (v in self.tmp) brought back

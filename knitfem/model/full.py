@@ -197,13 +197,21 @@ class FullModel:
         yc = self.yarn_contact
         if yc is None or self._tangent is None:
             return False
-        P = self.all_points(x)
-        if yc.fits(P):
+        if yc.fits(self.all_points(x)):
             return False
-        yc.relayout(P)
+        self.drop_tangent()
+        return True
+
+    def tangent_missed(self):
+        """How many tangent entries the yarn contact has found outside K's
+        pattern so far (they were left out)."""
+        return self.yarn_contact.missed if self.yarn_contact is not None else 0
+
+    def drop_tangent(self):
+        """K's pattern to be laid out again, at the next ``stiffness``, around
+        its state (counted in ``pattern_rebuilds``)."""
         self._tangent = None
         self.pattern_rebuilds += 1
-        return True
 
     def all_points(self, x):
         """Every rank's control points (ncp_total, 3) on every rank
@@ -297,16 +305,17 @@ class FullModel:
                 self.K_values = np.zeros(len(indices3))
         return self._slot3
 
-    def _tangent_pattern(self):
-        """K on the pattern of the yarn elements and the contacts' curvature
-        (``pattern.blocks3``), holding ``tangent_values`` itself; the places
-        of the yarn elements' entries in it (``tangent_slot3``); the
-        constraints' curvature operator into it. Made when K is first
-        needed."""
+    def _tangent_pattern(self, x):
+        """K on the pattern of the yarn elements, the contacts' curvature
+        and the yarn contact's pairs near x (``pattern.blocks3``), holding
+        ``tangent_values`` itself; the places of the yarn elements' entries
+        in it (``tangent_slot3``); the constraints' curvature operator into
+        it. Made when K is first needed, and when the pairs moved."""
         lay, cons_asm = self.layout, self.constraints
         with EV_ASSEMBLY:
             sets = [self.conn, cons_asm.element_cols()]
             if self.yarn_contact is not None:
+                self.yarn_contact.relayout(self.all_points(x))
                 sets.append(self.yarn_contact.pair_points(self.all_conn))
             tangent = ElementPattern(sets, lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts, *_) = \
@@ -370,7 +379,7 @@ class FullModel:
         K holds ``tangent_values`` itself: they are written, then K is
         assembled (a new state: factorisations redo)."""
         if self._tangent is None:
-            self._tangent_pattern()
+            self._tangent_pattern(x)
         values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
         if self.yarn_contact is not None:
             with EV_TANGENT:
