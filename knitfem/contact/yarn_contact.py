@@ -33,12 +33,15 @@ barrier there would fight the constraint. d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
 
-Broad phase: the toolkit's LBVH over the edges' boxes. Step filter:
+Broad phase: a Verlet list of the edge pairs within the band and a margin
+(a k-d tree of the edges' midpoints, segment distances vectorised; the
+toolkit's own broad phase found 57 000 box candidates on the 7×7 jersey and
+took 7–18 ms a call), found again when a sample has moved by half the
+margin; the toolkit's narrow phase on it. Step filter:
 ``step_fraction``, a conservative bound per pair of edges on the straight
-path of the samples between two states (candidates from a k-d tree of the
-edges' midpoints, segment distances vectorised; the toolkit's Tight
-Inclusion CCD with a minimum distance took 0.1–0.2 s a call on the 7×7
-jersey's 2 359 samples), so a Newton update scaled by it never brings two
+path of the samples between two states (the toolkit's Tight Inclusion CCD
+with a minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359
+samples), so a Newton update scaled by it never brings two
 yarn surfaces into contact.
 
 The tangent couples control points of different yarns. ``pairs`` lists
@@ -126,6 +129,7 @@ class YarnContact:
         self.per_yarn = m
         self.mesh.can_collide = self._filter(fabric, m, window)
         self.collisions, self.built = ipctk.NormalCollisions(), None
+        self.candidates, self.candidates_at = ipctk.Candidates(), None
         clearance = self._clearance(V, band * r)
         self.dhat = min(band * r, 0.9 * clearance)
         self.kappa = EI / r**2 / (4.77 * self.dmin**2 * self.dhat)
@@ -170,11 +174,27 @@ class YarnContact:
 
     def _build(self, V):
         """The pairs within the band at the samples V (kept for the next call
-        at the same V: forces and tangent are taken at the same state)."""
+        at the same V: forces and tangent are taken at the same state),
+        among the candidates (``_candidates``)."""
         if self.built is None or not np.array_equal(self.built, V):
-            self.collisions.build(self.mesh, V, self.dhat, self.dmin)
+            self.collisions.build(self._candidates(V), self.mesh, V, self.dhat,
+                                  self.dmin)
             self.built = V
         return self.collisions
+
+    def _candidates(self, V):
+        """The edge pairs within dmin + d̂ + margin of the samples where they
+        were last found, found again at V when a sample has moved more than
+        half the margin since: every pair within the band at V is among
+        them (a Verlet list; two samples close in by at most twice the
+        largest move)."""
+        V0 = self.candidates_at
+        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.margin) ** 2:
+            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin)
+            self.candidates.ee_candidates = [
+                ipctk.EdgeEdgeCandidate(a, b) for a, b in zip(e.tolist(), f.tolist())]
+            self.candidates_at = V.copy()
+        return self.candidates
 
     def energy(self, P):
         """E_y at all control points P (ncp_total, 3)."""
@@ -272,20 +292,24 @@ class YarnContact:
                 may |= self.samples_may_touch(a[:, p], b[:, q])
         return may & ~shared
 
-    def segment_pairs(self, P, reach):
-        """Keys a · nseg_total + b (a < b, global segment numbers; sorted,
-        unique) of the segments of the edge pairs that may touch and are
-        closer than dmin + d̂ + ``reach``."""
-        V = self.samples(P)
+    def close_edges(self, V, within):
+        """Edge pairs (e, f) that may touch and are closer than ``within``
+        at the samples V."""
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
-        within = self.dmin + self.dhat + reach
         close = cKDTree(mid).query_pairs(within + 2 * half.max(), output_type="ndarray")
         e, f = close[:, 0], close[:, 1]
         d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
         hit = d < within
         hit[hit] &= self.edges_may_touch(e[hit], f[hit])
-        a, b = self.edge_segment[e[hit]], self.edge_segment[f[hit]]
+        return e[hit], f[hit]
+
+    def segment_pairs(self, P, reach):
+        """Keys a · nseg_total + b (a < b, global segment numbers; sorted,
+        unique) of the segments of the edge pairs that may touch and are
+        closer than dmin + d̂ + ``reach``."""
+        e, f = self.close_edges(self.samples(P), self.dmin + self.dhat + reach)
+        a, b = self.edge_segment[e], self.edge_segment[f]
         lo, hi = np.minimum(a, b), np.maximum(a, b)
         return np.unique((lo * self.nseg_total + hi)[lo != hi])
 
