@@ -183,17 +183,17 @@ class YarnContact:
         return self.collisions
 
     def _candidates(self, V):
-        """The edge pairs within dmin + d̂ + margin of the samples where they
-        were last found, found again at V when a sample has moved more than
-        half the margin since: every pair within the band at V is among
-        them (a Verlet list; two samples close in by at most twice the
-        largest move)."""
-        V0 = self.candidates_at
-        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.margin) ** 2:
-            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin)
+        """The edge pairs within dmin + d̂ + margin + 0.4 r of the samples
+        where they were last found, found again at V when a sample has moved
+        more than 0.2 r since: every pair within the band and half the
+        margin at V is among them (a Verlet list; two edges close in by at
+        most twice the largest move)."""
+        V0, r = self.candidates_at, self.radius
+        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.2 * r) ** 2:
+            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin + 0.4 * r)
             self.candidates.ee_candidates = [
                 ipctk.EdgeEdgeCandidate(a, b) for a, b in zip(e.tolist(), f.tolist())]
-            self.candidates_at = V.copy()
+            self.candidates_at, self.candidate_edges = V.copy(), (e, f)
         return self.candidates
 
     def energy(self, P):
@@ -279,7 +279,8 @@ class YarnContact:
         apart = (li // w != lj // w) & ((li + w // 2) // w != (lj + w // 2) // w)
         ok = (self.sample_yarn[i] != self.sample_yarn[j]) | apart
         key = np.minimum(i, j) * len(self.sample_yarn) + np.maximum(i, j)
-        return ok & ~np.isin(key, self.excluded)
+        at = np.minimum(np.searchsorted(self.excluded, key), len(self.excluded) - 1)
+        return ok & (self.excluded[at] != key) if len(self.excluded) else ok
 
     def edges_may_touch(self, e, f):
         """Edge pairs without a common sample, one of whose sample pairs may
@@ -322,8 +323,16 @@ class YarnContact:
     def fits(self, P):
         """Whether the segment pairs within the band and half the margin at P
         are all in ``pairs`` (the tangent's pattern still holds them)."""
-        return bool(np.isin(self.segment_pairs(P, 0.5 * self.margin),
-                            self.pairs, assume_unique=True).all())
+        V = self.samples(P)
+        self._candidates(V)
+        e, f = self.candidate_edges
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        near = d < self.dmin + self.dhat + 0.5 * self.margin
+        a, b = self.edge_segment[e[near]], self.edge_segment[f[near]]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        need = (lo * self.nseg_total + hi)[lo != hi]
+        return bool(np.isin(need, self.pairs).all())
 
     def relayout(self, P):
         """``pairs`` taken again around P, with the whole margin."""
