@@ -300,6 +300,9 @@ class YarnContact:
         mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
         close = cKDTree(mid).query_pairs(within + 2 * half.max(), output_type="ndarray")
         e, f = close[:, 0], close[:, 1]
+        apart = (self.sample_yarn[e0[e]] != self.sample_yarn[e0[f]]) | \
+            (np.abs(e0[e] - e0[f]) >= self.run // 2 - 1)
+        e, f = e[apart], f[apart]
         d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
         hit = d < within
         hit[hit] &= self.edges_may_touch(e[hit], f[hit])
