@@ -34,13 +34,18 @@ apt:
 
 # The venv sees Debian's numpy/petsc4py; a .pth file points at Debian's
 # real-scalar petsc4py when /usr/lib/petsc (from the -dev package) is absent.
-# pip install -e . also compiles the yarn kernels (Cython) in place.
-$(VENV)/.installed: setup.py knitfem/yarn/_compiled.pyx
+# pip install -e . also compiles the yarn kernels (Cython) in place. The IPC
+# Toolkit (yarn contact) comes as a wheel, without its dependencies (they are
+# Debian's: numpy, scipy), so that pip never replaces Debian's numpy.
+IPCTK   := ipctk==1.6.1
+
+$(VENV)/.installed: setup.py knitfem/yarn/_compiled.pyx Makefile
 	test -x $(VPY) || $(PYTHON) -m venv --system-site-packages $(VENV)
 	site=$$($(VPY) -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"); \
 	petsc=$$(ls -d /usr/lib/petscdir/petsc3.*/x86_64-linux-gnu-real/lib/python3/dist-packages | tail -n 1); \
 	echo "$$petsc" > "$$site/debian-petsc4py.pth"
 	$(VPY) -m pip install -q --no-deps --no-build-isolation -e .
+	$(VPY) -m pip install -q --no-deps "$(IPCTK)"
 	touch $@
 
 demo: setup
@@ -54,7 +59,8 @@ test-serial:
 
 test-parallel:
 	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py \
-	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py
+	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py \
+	  tests/test_yarn_contact.py
 	# the saddle tests count factorisation events: a process of their own
 	timeout 300 $(MPIRUN) $(PYTEST) tests/test_saddle.py
 

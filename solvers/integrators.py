@@ -29,6 +29,7 @@ from .progress import note
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
+from .step_filter import set_step_filter
 from .stepping import PositionHistory, StepControl
 
 __all__ = ["SimulationError", "SymplecticEuler", "NewtonStepper", "BackwardEuler",
@@ -257,16 +258,7 @@ class NewtonStepper:
         self.control = control or StepControl(dt)
         self.prefix = prefix = f"{system.kind}_"
         x0 = system.start_state()
-        K = system.stiffness(x0)
-        self.A = K.duplicate(copy=True)
-        self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        # M in A's pattern: A = a K + b M is then one axpy of equal patterns
-        self.MA = self.A.duplicate()
-        self.MA.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
-        self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x0),
-                                  dense=getattr(system, "dense_saddle", False),
-                                  prefix=prefix,
-                                  blocks=getattr(system, "yarn_blocks", None))
+        self._layout(x0)
         x0.destroy()
         self.snes = PETSc.SNES().create(comm=system.comm)
         self.snes.setOptionsPrefix(prefix)
@@ -276,13 +268,16 @@ class NewtonStepper:
         self.snes.setType("newtonls")
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
-        self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: self.newton_tol / self.kappa, system))
+        self.snes.setConvergenceTest(self._missing_entries(step_convergence(
+            self.saddle, lambda: self.newton_tol / self.kappa, system)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         self.ksp = saddle_ksp(self.saddle, prefix)
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
+        self.filter = set_step_filter(self.snes, self._step_fraction) \
+            if getattr(system, "yarn_contact", None) is not None else None
+        self.missing = None                 # tangent entries missed before a solve
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
         self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
@@ -301,6 +296,53 @@ class NewtonStepper:
     def dt(self):
         """The fixed step, or the next trial step under step control."""
         return self.control.dt
+
+    def _layout(self, x):
+        """The Newton matrix A on the tangent's pattern at x, M in A's
+        pattern (MA), the saddle point (MUMPS analyses it on first use)."""
+        system = self.system
+        K = system.stiffness(x)
+        self.A = K.duplicate(copy=True)
+        self.A.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        # M in A's pattern: A = a K + b M is then one axpy of equal patterns
+        self.MA = self.A.duplicate()
+        self.MA.axpy(1.0, system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.saddle = SaddlePoint(self.A, system.constraint_jacobian(x),
+                                  dense=getattr(system, "dense_saddle", False),
+                                  prefix=self.prefix,
+                                  blocks=getattr(system, "yarn_blocks", None))
+
+    def relayout(self, x):
+        """A, MA, the saddle point and its KSP made again on the system's new
+        tangent pattern (the yarn contact's pairs moved; ``begin_step``)."""
+        for obj in (self.ksp, self.saddle, self.A, self.MA):
+            obj.destroy()
+        self._layout(x)
+        self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
+        self.ksp = saddle_ksp(self.saddle, self.prefix)
+        self.snes.setKSP(self.ksp)
+
+    def _missing_entries(self, test):
+        """``test``, but a Newton whose matrix lacked entries of the tangent
+        (``system.tangent_missed``: the yarn contact's pairs left its
+        pattern) stops at once, to be solved again on a new pattern
+        (``_solve``)."""
+        R = PETSc.SNES.ConvergedReason
+
+        def stop_or_test(snes, it, norms):
+            if self.missing is not None and it > 0 and \
+                    self.system.tangent_missed() > self.missing:
+                return R.DIVERGED_MAX_IT
+            return test(snes, it, norms)
+
+        return stop_or_test
+
+    def _step_fraction(self, z, y):
+        """Newton's update z ← z − y moves ε from ε̂ + κ v by −κ y_v: the
+        fraction of it the system allows (``step_fraction``)."""
+        nu = self.saddle.nu
+        x0 = self.xhat.getArray(readonly=True) + self.kappa * z[:nu]
+        return self.system.step_fraction(x0, x0 - self.kappa * y[:nu])
 
     def like(self, system):
         """This integrator, its step control and its settings (the Newton
@@ -407,6 +449,10 @@ class NewtonStepper:
             self._newton(h, stats)
             if self.snes.getConvergedReason() > 0:
                 break
+            if self._pattern_left():
+                self._newton(h, stats)
+                if self.snes.getConvergedReason() > 0:
+                    break
         else:
             raise SimulationError(f"Newton did not converge ({reason_name(self.snes)}, "
                                   f"|F| = {self.snes.getFunctionNorm():.3e}, "
@@ -419,6 +465,9 @@ class NewtonStepper:
     def _newton(self, h, stats):
         """One Newton solve of the step h from the predictor."""
         self.predict(h, self.tmp)
+        if self.filter is not None:
+            self._filter_prediction()
+            self.missing = self.system.tangent_missed()
         self.xn.copy(self.xref)
         zu, zl = self.saddle.split(self.z)
         zu[:] = self.tmp.getArray(readonly=True)
@@ -433,6 +482,27 @@ class NewtonStepper:
         finally:
             stats["newton"] += self.snes.getIterationNumber()
             stats["ksp"] += self.snes.getLinearSolveIterations()
+
+    def _pattern_left(self):
+        """After a failed Newton: if its matrix lacked tangent entries, the
+        system's pattern laid out again at the last iterate and the Newton
+        matrix with it; whether it was."""
+        if self.missing is None or self.system.tangent_missed() <= self.missing:
+            return False
+        self._unpack(self.z)
+        self.system.drop_tangent()
+        self.relayout(self.xe)
+        return True
+
+    def _filter_prediction(self):
+        """The predicted ε_{n+1} = ε̂ + κ v (v in self.tmp) brought back
+        along the straight path from ε_n as far as the system allows."""
+        v = self.tmp.getArray()
+        xn, xhat = self.xn.getArray(readonly=True), self.xhat.getArray(readonly=True)
+        x1 = xhat + self.kappa * v
+        t = self.system.step_fraction(xn, x1)
+        if t < 1.0:
+            v[:] = (xn + t * (x1 - xn) - xhat) / self.kappa
 
     def _commit(self, x, v, h):
         self.steps += 1
@@ -455,7 +525,8 @@ class NewtonStepper:
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
         stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
-        self.system.begin_step(x)               # lagged quantities (friction)
+        if self.system.begin_step(x):           # lagged quantities (friction)
+            self.relayout(x)                    # a new tangent pattern
         c = self.control
         while True:
             h, landed = c.propose(t, t_stop)

@@ -56,6 +56,7 @@ from .integrators import SimulationError, _default, step_convergence
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
+from .step_filter import set_step_filter
 
 __all__ = ["StaticSolver"]
 
@@ -95,6 +96,10 @@ class StaticSolver:
         self.snes.setTolerances(rtol=1e-12, atol=1e-50, max_it=500)
         self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
         self.snes.setFromOptions()
+        nu = self.saddle.nu
+        self.filter = set_step_filter(
+            self.snes, lambda z, y: system.step_fraction(z[:nu], z[:nu] - y[:nu])) \
+            if getattr(system, "yarn_contact", None) is not None else None
         self.x, self.zero = system.M.createVecLeft(), system.M.createVecLeft()
         self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
         self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()

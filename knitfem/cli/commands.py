@@ -250,15 +250,19 @@ def material_from_options(opts, scene=None, gravity=9.81, damping=None):
 
 
 def model_options(opts):
-    """(model, Gauss points, kernels) from -knit_model, -knit_quadrature,
-    -knit_kernels; declares the options read only for some models, too
-    (-knit_lod, -knit_volume; -knit_full_region(s))."""
+    """(model, Gauss points, kernels, yarn contact) from -knit_model,
+    -knit_quadrature, -knit_kernels, -knit_yarn_contact; declares the options
+    read only for some models, too (-knit_lod, -knit_volume;
+    -knit_full_region(s))."""
     from knitfem.yarn.kernels import KINDS
     from knitfem.lod.mixed import region_options
     from knitfem.lod.reduced import sampling_options, stretch_options, volume_options
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
+    yarn_contact = opts.getChoice("yarn_contact", "on", ("on", "off"),
+                                  "barrier keeping the yarns apart in the full "
+                                  "model (clearance band 0.072 r above 2r)") == "on"
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment (at least 2, "
                      "which keeps the mass matrix positive definite; 4 integrates "
                      "it exactly)", 2)
@@ -268,7 +272,7 @@ def model_options(opts):
     sampling_options(opts)
     stretch_options(opts)
     region_options(opts)
-    return kind, nq, kernels
+    return kind, nq, kernels, yarn_contact
 
 
 def build_system(comm, opts, fabric, material):
@@ -278,14 +282,15 @@ def build_system(comm, opts, fabric, material):
     from knitfem.lod.reduced import embedding_from_options, reduced_from_options, stretch_options
     from knitfem.run.relax import stress_free
 
-    kind, nq, kernels = model_options(opts)
+    kind, nq, kernels, yarn_contact = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     if kind != "full":                   # the embedding holds the stitches
         fabric = stress_free(fabric)
     try:
         own = kind != "reduced" or stretch_options(opts, bool(fabric.bodies)) == "yarn"
-        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own)
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own,
+                         yarn_contact=yarn_contact and kind == "full")
         if kind == "full":
             return full
         embedding = embedding_from_options(opts, comm, fabric, full.layout)

@@ -29,11 +29,13 @@ from petsc4py import PETSc
 from solvers.aij import OwnAIJ
 
 from knitfem.contact import constraints as cons
-from knitfem.model.assembly import ElementPattern, YarnLayout, create_aij, kron_identity
+from knitfem.model.assembly import (ElementPattern, YarnLayout, create_aij, csr_rows,
+                                    kron_identity)
 from knitfem.contact.colliders import Barrier
 from knitfem.contact.constraint_assembly import ConstraintAssembly
 from knitfem.errors import KnitError
 from knitfem.yarn import bspline
+from knitfem.contact.yarn_contact import YarnContact
 from knitfem.yarn.kernels import yarn_kernels
 from knitfem.yarn.elements import YarnElements
 
@@ -92,13 +94,15 @@ class FullModel:
     ``bspline.fewest_gauss_points`` (KnitError otherwise); ``kernels`` one of
     ``kernels.KINDS`` ("compiled" or "numpy"); ``stretch`` False leaves the
     yarns' stretching energy out (for an embedded model that measures it its
-    own way, ``shell.ShellStretch``).
+    own way, ``shell.ShellStretch``); ``yarn_contact`` adds the barrier
+    E_y that keeps yarns apart (``contact.yarn_contact``), whose tangent
+    pattern follows the active pairs (``begin_step``).
     """
 
     kind = "full"
 
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
-                 stretch=True):
+                 stretch=True, yarn_contact=False):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
         fewest = bspline.fewest_gauss_points(fabric.nseg, fabric.closed)
@@ -120,6 +124,10 @@ class FullModel:
                                    material.rho * material.gravity,
                                    friction=fabric.friction) \
                 if fabric.bodies else None
+            self.yarn_contact = YarnContact(fabric, material.EI) \
+                if yarn_contact else None
+            self.all_conn = fabric.connectivity(0, fabric.nyarn)
+            self.pattern_rebuilds = 0
             self.pattern = ElementPattern(self.conn, lay.cp_start, lay.ncp_local)
             n, N = lay.ncp_local, lay.ncp
             m_csr = (self.pattern.indptr, self.pattern.indices,
@@ -190,24 +198,76 @@ class FullModel:
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
         """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``)."""
+        reference points are taken there (lagged, ``colliders``); the
+        tangent's pattern is laid out again around x when the yarn pairs
+        near contact no longer fit it. Returns whether it was (the Newton
+        matrix must then be made again). Collective."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
+        yc = self.yarn_contact
+        if yc is None or self._tangent is None:
+            return False
+        if yc.fits(self.all_points(x)):
+            return False
+        self.drop_tangent()
+        return True
+
+    def tangent_missed(self):
+        """How many tangent entries the yarn contact has found outside K's
+        pattern so far (they were left out)."""
+        return self.yarn_contact.missed if self.yarn_contact is not None else 0
+
+    def drop_tangent(self):
+        """K's pattern to be laid out again, at the next ``stiffness``, around
+        its state (counted in ``pattern_rebuilds``)."""
+        self._tangent = None
+        self.pattern_rebuilds += 1
+
+    def all_points(self, x):
+        """Every rank's control points (ncp_total, 3) on every rank
+        (collective): the yarn contact couples any two yarns."""
+        local = x.getArray(readonly=True) if isinstance(x, PETSc.Vec) else x
+        if self.comm.size == 1:
+            return local.reshape(-1, 3)
+        return np.concatenate(self.comm.tompi4py().allgather(local)).reshape(-1, 3)
+
+    def step_fraction(self, x0, x1):
+        """The fraction of the straight move from x0 to x1 (local arrays)
+        that keeps the yarns apart (1 without yarn contact; collective)."""
+        if self.yarn_contact is None:
+            return 1.0
+        return self.yarn_contact.step_fraction(self.all_points(x0), self.all_points(x1))
+
+    def min_yarn_distance(self, x):
+        """Smallest centreline distance of two yarn pieces that may touch
+        (inf beyond the contact's reach or without it; collective)."""
+        if self.yarn_contact is None:
+            return np.inf
+        return self.yarn_contact.min_distance(self.all_points(x))
 
     def elastic_energy(self, x):
-        """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
+        """E(ε) = E_s + E_b (+ E_c, the colliders' barrier, + E_y, the yarn
+        contact's) (collective)."""
         P = self.yarn_points(x)
         e = self.elements.energy(P)
         if self.barrier is not None:
             e += self.barrier.energy(P)
+        if self.yarn_contact is not None:
+            Pall = self.all_points(x)
+            e += self.yarn_contact.energy(Pall) if self.comm.rank == 0 else 0.0
         return self.comm.tompi4py().allreduce(e)
 
     def add_elastic_forces(self, x, Q):
-        """Q += −∂E/∂ε (E = E_s + E_b + E_c; local, no communication)."""
+        """Q += −∂E/∂ε (E = E_s + E_b + E_c + E_y; local, but for the yarn
+        contact's gather of all control points)."""
         P, out = self.yarn_points(x), Q.getArray().reshape(-1, 3)
         self.kernels.add_gradient(P, out, -1.0)
         if self.barrier is not None:
             self.barrier.add_gradient(P, out, -1.0)
+        if self.yarn_contact is not None:
+            g = self.yarn_contact.gradient(self.all_points(x))
+            lay = self.layout
+            out -= g[3 * lay.cp_start:3 * lay.cp_end].reshape(-1, 3)
 
     def min_collider_distance(self, x):
         """Smallest distance of a yarn surface from a body (collective; inf
@@ -255,17 +315,20 @@ class FullModel:
                 self.K_values = np.zeros(len(indices3))
         return self._slot3
 
-    def _tangent_pattern(self):
-        """K on the pattern of the yarn elements and the contacts' curvature
-        (``pattern.blocks3``), holding ``tangent_values`` itself; the places
-        of the yarn elements' entries in it (``tangent_slot3``); the
-        constraints' curvature operator into it. Made when K is first
-        needed."""
+    def _tangent_pattern(self, x):
+        """K on the pattern of the yarn elements, the contacts' curvature
+        and the yarn contact's pairs near x (``pattern.blocks3``), holding
+        ``tangent_values`` itself; the places of the yarn elements' entries
+        in it (``tangent_slot3``); the constraints' curvature operator into
+        it. Made when K is first needed, and when the pairs moved."""
         lay, cons_asm = self.layout, self.constraints
         with EV_ASSEMBLY:
-            tangent = ElementPattern([self.conn, cons_asm.element_cols()],
-                                     lay.cp_start, lay.ncp_local)
-            indptr3, indices3, (slot3_yarn, slot3_contacts) = \
+            sets = [self.conn, cons_asm.element_cols()]
+            if self.yarn_contact is not None:
+                self.yarn_contact.relayout(self.all_points(x))
+                sets.append(self.yarn_contact.pair_points(self.all_conn))
+            tangent = ElementPattern(sets, lay.cp_start, lay.ncp_local)
+            indptr3, indices3, (slot3_yarn, slot3_contacts, *_) = \
                 tangent.blocks3(diagonal=(1,))
             n, N = 3 * lay.ncp_local, 3 * lay.ncp
             K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
@@ -274,9 +337,30 @@ class FullModel:
             self.tangent_values = K.values
             cons_asm.B = cons_asm.curvature_operator(K.place(slot3_contacts),
                                                      len(indices3))
+            if self.K is not None:
+                self.K.destroy()
             self.K = K.mat
             self.K.setOptionsPrefix("full_K_")
+            # K's entries by key (local row) · 3 ncp + column, for the yarn
+            # contact's Hessian (csr_rows: CSR order is key order)
+            self.tangent_keys = csr_rows(indptr3).astype(np.int64) * (3 * lay.ncp) \
+                + indices3
+            self.tangent_place = K.place(np.arange(len(indices3)))
         self._tangent = K
+
+    def _add_contact_hessian(self, x, values):
+        """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern; entries the
+        pattern lacks are dropped and counted (``yarn_contact.missed``)."""
+        lay = self.layout
+        H = self.yarn_contact.hessian(self.all_points(x))[3 * lay.cp_start:3 * lay.cp_end]
+        if not H.nnz:
+            return
+        keys = csr_rows(H.indptr).astype(np.int64) * (3 * lay.ncp) + H.indices
+        pos = np.minimum(np.searchsorted(self.tangent_keys, keys),
+                         len(self.tangent_keys) - 1)
+        hit = self.tangent_keys[pos] == keys
+        values[self.tangent_place[pos[hit]]] += H.data[hit]
+        self.yarn_contact.missed += int(np.count_nonzero(H.data[~hit]))
 
     def stiffness_values(self, x, xref=None):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
@@ -305,8 +389,11 @@ class FullModel:
         K holds ``tangent_values`` itself: they are written, then K is
         assembled (a new state: factorisations redo)."""
         if self._tangent is None:
-            self._tangent_pattern()
+            self._tangent_pattern(x)
         values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
+        if self.yarn_contact is not None:
+            with EV_TANGENT:
+                self._add_contact_hessian(x, values)
         if mu is not None and weight:
             with EV_TANGENT:
                 self.constraints.add_curvature(mu, weight, values)

@@ -632,6 +632,9 @@ class Simulation:
             rec.update(rtol=control.rtol, atol=control.atol)
         if getattr(s, "sampling", None):
             rec["sampling"] = s.sampling
+        if getattr(s, "yarn_contact", None) is not None:
+            rec.update(yarn_contact_pattern_rebuilds=s.pattern_rebuilds,
+                       yarn_contact_missed_entries=s.yarn_contact.missed)
         if self.energy:
             rec.update(self.energy_record())
         if self.comm.rank == 0:

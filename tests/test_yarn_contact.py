@@ -1,0 +1,218 @@
+"""Yarn–yarn contact: the barrier's derivatives, its invariance, its zero at
+rest, its place in the full model (any number of ranks) and the step
+filter. Runs serial and under mpirun."""
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from knitfem.contact.yarn_contact import YarnContact, segment_distance
+from knitfem.knit.fabric import Fabric
+from knitfem.model.full import FullModel, Material
+from solvers.integrators import BackwardEuler
+
+from helpers import COMM, gather, jersey, run, to_scipy
+
+R = 5e-4
+
+
+def crossing(gap=0.5, nseg=8, hold=False):
+    """Two straight yarns crossing at right angles, their centrelines
+    2r + ``gap`` r apart at the crossing (yarn 0 above, along x; yarn 1
+    below, along y); with ``hold`` both ends of each fixed."""
+    ncp = nseg + 3
+    t = (np.arange(ncp) - (ncp - 1) / 2) * 4 * R
+    z = 0.5 * (2 + gap) * R
+    X = np.zeros((2, ncp, 3))
+    X[0, :, 0], X[0, :, 2] = t, z
+    X[1, :, 1], X[1, :, 2] = t, -z
+    fab = Fabric(X, R)
+    if hold:
+        fab.fixed = (np.array([0, 0, 1, 1]), np.array([0.0, nseg, 0.0, nseg]))
+    return fab
+
+
+def pushed(fab, depth):
+    """The crossing's control points with the two middles pushed towards
+    each other by ``depth`` r each, smoothly along the yarns."""
+    P = fab.X.copy()
+    bump = depth * R * np.exp(-np.linspace(-2, 2, P.shape[1]) ** 2)
+    P[0, :, 2] -= bump
+    P[1, :, 2] += bump
+    return P.reshape(-1, 3)
+
+
+def band_state(yc, fab):
+    """A state whose closest pair sits in the middle of the band."""
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        d = yc.min_distance(pushed(fab, mid))
+        lo, hi = (mid, hi) if d > yc.dmin + 0.5 * yc.dhat else (lo, mid)
+    return pushed(fab, lo)
+
+
+def test_segment_distance_cases():
+    """Crossing, parallel, end-to-end and point–segment distances."""
+    p = np.array([[0.0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    q = np.array([[1.0, 0, 0], [1, 0, 0], [1, 0, 0], [1, 0, 0]])
+    a = np.array([[0.5, -1, 1], [0, 1, 0], [2, 0, 0], [3, 0, 2]])
+    b = np.array([[0.5, 1, 1], [1, 1, 0], [3, 0, 0], [3, 0, 2 + 1e-9]])
+    d = segment_distance(p, q, a, b)
+    assert np.allclose(d, [1.0, 1.0, 1.0, np.hypot(2, 2)], rtol=0, atol=1e-9)
+
+
+def test_zero_at_template_rest():
+    """No pair is within the band at the jersey's rest: E_y, its gradient
+    and Hessian vanish, and the band sits below the rest clearance."""
+    fab = jersey(3, 3)
+    yc = YarnContact(fab, Material().EI)
+    P = fab.X.reshape(-1, 3)
+    assert yc.energy(P) == 0.0
+    assert not np.any(yc.gradient(P))
+    assert yc.hessian(P).nnz == 0 or not np.any(yc.hessian(P).data)
+    assert yc.min_distance(P, 0.5 * R) > yc.dmin + yc.dhat
+    assert 0 < yc.dhat <= 0.08 * R
+
+
+def test_gradient_and_hessian_by_finite_differences():
+    """∂E/∂ε and ∂²E/∂ε² (unprojected) against central differences, in the
+    band; the projected Hessian is positive semi-definite."""
+    fab = crossing()
+    yc = YarnContact(fab, Material().EI)
+    P = band_state(yc, fab)
+    E, g = yc.energy(P), yc.gradient(P)
+    assert E > 0
+    H = yc.hessian(P, project=False).toarray()
+    h = 1e-4 * yc.dhat
+    active = np.flatnonzero(np.abs(g) > 1e-6 * np.abs(g).max())
+    fd_g, fd_H = [], []
+    for i in active:
+        e = np.zeros(P.size)
+        e[i] = h
+        fd_g.append((yc.energy(P + e.reshape(-1, 3)) - yc.energy(P - e.reshape(-1, 3)))
+                    / (2 * h))
+        fd_H.append((yc.gradient(P + e.reshape(-1, 3))
+                     - yc.gradient(P - e.reshape(-1, 3))) / (2 * h))
+    # measured: 2e-8 and 3e-7 relative
+    assert np.allclose(fd_g, g[active], rtol=0, atol=1e-6 * np.abs(g).max())
+    assert np.allclose(np.array(fd_H), H[active], rtol=0,
+                       atol=1e-5 * np.abs(H).max())
+    Hp = yc.hessian(P).toarray()
+    assert np.linalg.eigvalsh(0.5 * (Hp + Hp.T)).min() >= -1e-9 * np.abs(Hp).max()
+
+
+def test_frame_indifference():
+    """A rigid motion changes neither E_y nor the length of its gradient
+    (which turns with the fabric)."""
+    fab = crossing()
+    yc = YarnContact(fab, Material().EI)
+    P = band_state(yc, fab)
+    c, s = np.cos(0.7), np.sin(0.7)
+    Rm = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ \
+        np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+    Q = P @ Rm.T + np.array([0.01, -0.02, 0.005])
+    assert yc.energy(Q) == pytest.approx(yc.energy(P), rel=1e-9)
+    gP, gQ = yc.gradient(P).reshape(-1, 3), yc.gradient(Q).reshape(-1, 3)
+    assert np.allclose(gQ, gP @ Rm.T, rtol=0, atol=1e-8 * np.abs(gP).max())
+
+
+def test_step_filter_never_crosses():
+    """Random moves of the jersey cut by ``step_fraction``: no point of the
+    path comes within dmin; a translation is not cut."""
+    fab = jersey(3, 3)
+    yc = YarnContact(fab, Material().EI)
+    P = fab.X.reshape(-1, 3)
+    assert yc.step_fraction(P, P + 3 * R) == 1.0
+    rng = np.random.default_rng(3)
+    for scale in (0.05, 0.3, 1.0):
+        P1 = P + rng.normal(size=P.shape) * scale * R
+        t = yc.step_fraction(P, P1)
+        assert 0 < t <= 1
+        for tau in np.linspace(0, t, 5)[1:]:
+            assert yc.min_distance(P + tau * (P1 - P), 2 * R) > yc.dmin
+
+
+def test_full_model_forces_and_tangent_on_any_ranks():
+    """The full model's forces and tangent carry −∂E_y/∂ε and ∂²E_y/∂ε² in
+    their rows on every rank (the same as one rank's)."""
+    fab = crossing()
+    full = FullModel(COMM, fab, Material(gravity=0.0), yarn_contact=True)
+    full_off = FullModel(COMM, fab, Material(gravity=0.0))
+    yc = full.yarn_contact
+    P = band_state(yc, fab)
+    x = full.rest_state()
+    lo, hi = x.getOwnershipRange()
+    x.getArray()[:] = P.ravel()[lo:hi]
+    v = x.duplicate()
+    v.zeroEntries()
+    Q, Q0 = x.duplicate(), x.duplicate()
+    full.forces(x, v, Q)
+    full_off.forces(x, v, Q0)
+    assert np.allclose(gather(COMM, Q) - gather(COMM, Q0), -yc.gradient(P),
+                       rtol=0, atol=1e-12 * np.abs(yc.gradient(P)).max())
+    full.begin_step(x)
+    K = to_scipy(full.stiffness(x)).toarray()
+    K0 = to_scipy(full_off.stiffness(x)).toarray()
+    H = yc.hessian(P).toarray()[lo:hi]
+    diff = np.zeros_like(H)
+    diff[:, :K.shape[1]] = K - K0
+    assert yc.missed == 0
+    assert np.allclose(diff, H, rtol=0, atol=1e-9 * np.abs(H).max())
+    assert full.elastic_energy(x) - full_off.elastic_energy(x) == \
+        pytest.approx(yc.energy(P), rel=1e-12)
+    for m in (full, full_off):
+        m.destroy()
+
+
+def test_two_crossing_yarns_pushed_together_stop_at_thickness():
+    """Two straight yarns held at their ends and pushed through each other
+    at the crossing by opposite forces (damped, backward Euler) come to rest
+    with their centrelines between 2r and 2r + d̂ apart, where the barrier
+    holds the load; without contact they pass through."""
+    fab = crossing(gap=0.5, hold=True)
+    F = 2e-3
+    fab.loads = (np.array([0, 1]), np.array([4.0, 4.0]),
+                 np.array([[0, 0, -F], [0, 0, F]]))
+    gaps = {}
+    for contact in (True, False):
+        full = FullModel(COMM, fab, Material(gravity=0.0, damping=200.0),
+                         yarn_contact=contact)
+        integ, x, _ = run(full, BackwardEuler, 2e-3, 40)
+        yc = YarnContact(fab, Material().EI)
+        gaps[contact] = yc.min_distance(full.all_points(x), 4 * R)
+        full.destroy()
+    assert gaps[False] < 2 * R
+    assert 2 * R < gaps[True] < 2 * R + yc.dhat
+
+
+def test_tangent_pattern_follows_the_pairs():
+    """A state whose near pairs left the pattern makes ``begin_step`` lay it
+    out again (counted), and the new pattern holds the whole Hessian."""
+    fab = crossing(gap=3.0)
+    full = FullModel(COMM, fab, Material(gravity=0.0), yarn_contact=True)
+    x = full.rest_state()
+    full.stiffness(x)
+    assert len(full.yarn_contact.pairs) == 0
+    P = pushed(fab, 1.5)
+    lo, hi = x.getOwnershipRange()
+    x.getArray()[:] = P.ravel()[lo:hi]
+    assert full.begin_step(x) and full.pattern_rebuilds == 1
+    assert not full.begin_step(x)
+    full.stiffness(x)
+    assert full.yarn_contact.missed == 0
+    full.destroy()
+
+
+def test_option_turns_it_off():
+    """-knit_yarn_contact off builds the full model without it."""
+    from knitfem.cli.commands import model_options
+    from knitfem.cli.options import KnitOptions
+
+    opts = PETSc.Options()
+    opts.setValue("-knit_yarn_contact", "off")
+    try:
+        assert model_options(KnitOptions())[3] is False
+    finally:
+        opts.delValue("-knit_yarn_contact")
+    assert model_options(KnitOptions())[3] is True
