@@ -165,6 +165,7 @@ def relax(comm):
         raise KnitError(f"-knit_template_scale {','.join(map(str, scale))}: "
                         "expected three positive factors")
     material = material_from_options(opts, gravity=0.0, damping=RELAX_DAMPING)
+    yarn_contact = yarn_contact_option(opts, "on")
     t_max = opts.getReal("t_end", 2.0, "longest relaxation [s] (it stops when the "
                          "knit has come to rest)", positive=True)
     rest = opts.getReal("rest_speed", 1e-5, "the knit is at rest when its RMS speed "
@@ -177,7 +178,7 @@ def relax(comm):
     out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
     try:
         fabric = natural_fabric(jersey, template, ell, scale)
-        system = FullModel(comm, fabric, material)
+        system = FullModel(comm, fabric, material, yarn_contact=yarn_contact)
         PETSc.Sys.Print(f"knitfem relax: {jersey.rows}x{jersey.cols} {jersey.knit}, "
                         f"loop length {1e3 * ell:.4g} mm, {system.M.getSize()[0]} "
                         f"coordinates + {system.C.getSize()[0]} constraints")
@@ -249,6 +250,15 @@ def material_from_options(opts, scene=None, gravity=9.81, damping=None):
                              nonnegative=True))
 
 
+def yarn_contact_option(opts, default="off"):
+    """-knit_yarn_contact: True for on. Off by default in ``run`` (it costs
+    2–6 times a full-model step today), on in ``relax``."""
+    return opts.getChoice("yarn_contact", default, ("on", "off"),
+                          "barrier keeping the yarns apart in the full "
+                          "model (clearance band 0.072 r above 2r; relax: on, "
+                          "run: off)") == "on"
+
+
 def model_options(opts):
     """(model, Gauss points, kernels, yarn contact) from -knit_model,
     -knit_quadrature, -knit_kernels, -knit_yarn_contact; declares the options
@@ -260,9 +270,7 @@ def model_options(opts):
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
-    yarn_contact = opts.getChoice("yarn_contact", "on", ("on", "off"),
-                                  "barrier keeping the yarns apart in the full "
-                                  "model (clearance band 0.072 r above 2r)") == "on"
+    yarn_contact = yarn_contact_option(opts)
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment (at least 2, "
                      "which keeps the mass matrix positive definite; 4 integrates "
                      "it exactly)", 2)
