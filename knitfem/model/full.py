@@ -98,10 +98,10 @@ class FullModel:
                  stretch=True):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
-        self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
+        self.layout = lay = YarnLayout(comm, fabric.yarn_start)
         with EV_ASSEMBLY:
             self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)
-            Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
+            Xloc = fabric.X[lay.cp_start:lay.cp_end]
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
                                          material.rho, material.EA if stretch else 0.0,
                                          material.EI, nq=nq)
@@ -149,7 +149,7 @@ class FullModel:
     def _state(self, X):
         x = self.M.createVecRight()
         lay = self.layout
-        x.getArray()[:] = X[lay.yarn_start:lay.yarn_end].ravel()
+        x.getArray()[:] = X[lay.cp_start:lay.cp_end].ravel()
         return x
 
     def yarn_points(self, x):
@@ -169,13 +169,12 @@ class FullModel:
 
     def gather_points(self, x):
         """All control points on rank 0 (None elsewhere), as open splines
-        (``Fabric.open_splines``: closed yarns repeat three at their end)."""
+        (``Fabric.curves``: closed yarns repeat three at their end)."""
         local = x.getArray(readonly=True)
         parts = self.comm.tompi4py().gather(local, root=0)
         if self.comm.rank:
             return None
-        f = self.fabric
-        return f.open_splines(np.concatenate(parts).reshape(f.nyarn, f.ncp, 3))
+        return self.fabric.curves(np.concatenate(parts))
 
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
@@ -313,14 +312,14 @@ class FullModel:
         of course k when k + 1 is in the block as well), so that its own
         saddle point is solvable."""
         lay, cons_asm = self.layout, self.constraints
-        ncp, nyarn = lay.ncp_per_yarn, lay.nyarn
+        offset, nyarn = lay.yarn_offset, lay.nyarn
         row_owner = np.repeat(cons_asm.owner, 3)
         row_reach = row_owner + np.repeat(cons_asm.kind == "contact", 3)
         blocks = []
         for first in range(lay.yarn_start, lay.yarn_end, size):
             lo = max(first - overlap, 0)
             hi = min(first + size + overlap, nyarn)
-            coords = np.arange(3 * ncp * lo, 3 * ncp * hi)
+            coords = np.arange(3 * offset[lo], 3 * offset[hi])
             rows = np.flatnonzero((row_owner >= lo) & (row_reach < hi))
             blocks.append((coords, rows))
         return blocks
