@@ -151,3 +151,19 @@ def test_output_carries_the_course_of_every_point(tmp_path):
     assert np.all(course[yarn == 1] == 2)
     assert (tmp_path / "checkpoint.h5").exists()
     assert list(tmp_path.glob("*.png"))
+
+
+def test_yarn_blocks_hold_the_constraints_within_their_yarns():
+    """Schwarz blocks of one yarn each: the joined yarn's block holds its
+    own courses' interlocks (2 a stitch), the last yarn's its holds; the
+    interlocks between the two yarns are in neither."""
+    from knitfem.model.full import FullModel
+
+    fab = two_courses_one_yarn(3, hold="top")
+    model = FullModel(SELF, fab, Material())
+    (c0, r0), (c1, r1) = model.yarn_blocks(1, 0)
+    assert len(c0) == 3 * fab.yarn_ncp[0] and len(c1) == 3 * fab.yarn_ncp[1]
+    kind = np.repeat(model.constraint_kind, 3)
+    assert len(r0) == 3 * 2 * 3 and np.all(kind[r0] == "contact")
+    assert len(r1) == 3 * 3 and np.all(kind[r1] == "fixed")
+    model.destroy()

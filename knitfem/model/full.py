@@ -304,23 +304,22 @@ class FullModel:
         return self.K
 
     def yarn_blocks(self, size, overlap):
-        """Subdomains of whole courses for an additive Schwarz method on
-        [A Cᵀ; C 0]: this rank's courses in runs of ``size``, each widened by
-        ``overlap`` courses either side (across ranks too). A block is
+        """Subdomains of whole yarns for an additive Schwarz method on
+        [A Cᵀ; C 0]: this rank's yarns in runs of ``size``, each widened by
+        ``overlap`` yarns either side (across ranks too). A block is
         (coordinates, constraint rows), global indices of A and C: every
-        coordinate of its courses and every constraint among them (a contact
-        of course k when k + 1 is in the block as well), so that its own
-        saddle point is solvable."""
-        lay, cons_asm = self.layout, self.constraints
+        coordinate of its yarns and every constraint among them (one that
+        reads no yarn outside the block: a contact of course k when k + 1 is
+        in the block as well), so that its own saddle point is solvable."""
+        lay = self.layout
         offset, nyarn = lay.yarn_offset, lay.nyarn
-        row_owner = np.repeat(cons_asm.owner, 3)
-        row_reach = row_owner + np.repeat(cons_asm.kind == "contact", 3)
+        row_low, row_high = np.repeat(self.constraints.reach, 3, axis=0).T
         blocks = []
         for first in range(lay.yarn_start, lay.yarn_end, size):
             lo = max(first - overlap, 0)
             hi = min(first + size + overlap, nyarn)
             coords = np.arange(3 * offset[lo], 3 * offset[hi])
-            rows = np.flatnonzero((row_owner >= lo) & (row_reach < hi))
+            rows = np.flatnonzero((row_low >= lo) & (row_high < hi))
             blocks.append((coords, rows))
         return blocks
 
