@@ -595,7 +595,7 @@ class Simulation:
             rec.update(lowest_point=low.tolist(),
                        drop=float(self.initial_lowest - low[1]),
                        sag=sag_below_supports(self.system.fabric, P, low),
-                       tip=P.at([0], P.segments()[:1])[0].tolist())
+                       tip=P.at([0], P.nseg[:1])[0].tolist())
         return self.comm.tompi4py().bcast(rec, root=0)
 
     def write_summary(self, rec, status, quiet=False):

@@ -71,14 +71,15 @@ class Curves:
         """The same yarns with the control points ``points`` (N, 3)."""
         return replace(self, points=np.asarray(points).reshape(-1, 3))
 
-    def segments(self):
+    @property
+    def nseg(self):
         """Segments (nyarn,) of each yarn, n_f − 3."""
         return np.diff(self.start) - 3
 
     def at(self, yarn, s):
         """Points (n, 3) P_f(s) of the yarns ``yarn`` at parameters s (n,)."""
         yarn = np.asarray(yarn, dtype=np.int64)
-        k, u = bspline.locate(s, self.segments()[yarn])
+        k, u = bspline.locate(s, self.nseg[yarn])
         cols = (self.start[yarn] + k)[:, None] + np.arange(4)
         return np.einsum("na,nai->ni", bspline.basis(u), self.points[cols])
 
