@@ -252,7 +252,7 @@ def case(comm, options, t_end=None, steps=None, points=False):
             rec.update(steps=summary["steps"], newton=summary["newton_iterations"],
                        ksp=summary["ksp_iterations"], summary=summary)
             if points:
-                P = sim.geometry()[0]
+                P = np.asarray(sim.geometry()[0]) if comm.rank == 0 else None
         except (SimulationError, PETSc.Error, KnitError) as err:
             rec["failed"] = one_line(err)
             PETSc.Sys.Print(f"  failed: {rec['failed']}")

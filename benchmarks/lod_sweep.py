@@ -181,7 +181,7 @@ def pulled_case(comm, options, t_end):
             if adapt is not None:
                 rec.update(adapt.record())
                 rec["unknowns"] = rec["adapt"]["unknowns_max"]
-            P = sim.geometry()[0]
+            P = np.asarray(sim.geometry()[0]) if comm.rank == 0 else None
         except (SimulationError, PETSc.Error, KnitError) as err:
             rec["failed"] = str(err).strip().splitlines()[-1]
             PETSc.Sys.Print(f"  failed: {rec['failed']}")
@@ -209,15 +209,16 @@ def reference(comm, path, t_end):
     return rec, x
 
 
-def near_pull(fabric_X, pull_yarn, pull_s, radius_stitches):
+def near_pull(fabric, pull_yarn, pull_s, radius_stitches):
     """Control points within ``radius_stitches`` stitch widths of the pulled
-    loop head at rest: a boolean (nyarn, ncp) mask."""
-    from knitfem.yarn import bspline
+    loop head at rest: a boolean (N,) mask."""
     from knitfem.knit.pattern import SEGMENTS_PER_STITCH
 
-    head = bspline.curve_points(fabric_X[pull_yarn], np.array([pull_s]))[0]
-    width = np.abs(fabric_X[0, SEGMENTS_PER_STITCH + 1, 0] - fabric_X[0, 1, 0])
-    return np.linalg.norm(fabric_X - head, axis=-1) <= radius_stitches * width
+    cols, b = fabric.point_rows([pull_yarn], [pull_s])
+    X = fabric.X
+    head = b[0] @ X[cols[0]]
+    width = np.abs(X[SEGMENTS_PER_STITCH + 1, 0] - X[1, 0])
+    return np.linalg.norm(X - head, axis=-1) <= radius_stitches * width
 
 
 def split_error(P, Pref, near, radius):
@@ -243,18 +244,18 @@ def pulled_study(comm, rows, cols, t_end, ref_dir, radius_near, name,
     PETSc.Sys.Print(f"pulled {rows}x{cols} full ...")
     if ref_dir:
         full, x = reference(comm, ref_dir, t_end)
-        Pref = x.reshape(rows, -1, 3)
+        Pref = x.reshape(-1, 3)
     else:
         full, Pref, _ = pulled_case(comm, dict(base, knit_model="full"), t_end)
     out = dict(rows=rows, cols=cols, full=full, models=[])
-    X = jersey_fabric(Jersey(rows, cols)).X
+    fabric = jersey_fabric(Jersey(rows, cols))
     for label in models:
         extra = PULLED_MODELS[label]
         PETSc.Sys.Print(f"pulled {rows}x{cols} {label} ...")
         r, P, adapt = pulled_case(comm, dict(base, **extra), t_end)
         r["label"] = label
         if "failed" not in r and "failed" not in full and comm.rank == 0:
-            near = near_pull(X, *r["pull"], radius_near)
+            near = near_pull(fabric, *r["pull"], radius_near)
             r["error"] = split_error(P, Pref, near, r["radius"])
             r["near_points"] = int(near.sum())
             r["unknowns_over_full"] = r["unknowns"] / full["unknowns"]

@@ -47,7 +47,7 @@ for kind in ("full", "reduced"):
     sim = knitfem.simulation(system, out=f"hanging_{kind}", scene="hanging",
                              snapshots=(T_END,), verbose=False)
     rec = sim.run(T_END)
-    shapes[kind] = knitfem.centrelines(sim)          # (yarns, points, 3)
+    shapes[kind] = knitfem.centrelines(sim).points   # (points, 3)
     results[kind] = {k: rec[k] for k in ("unknowns", "steps", "newton_iterations",
                                          "wall_time_s", "drop")}
     PETSc.Sys.Print(f"{kind:8s} {rec['unknowns']:6d} unknowns, {rec['steps']:4d} "

@@ -39,8 +39,8 @@ for kind in ("full", "reduced"):
         else knitfem.reduced_model(fabric)
     x, newton = knitfem.equilibrium(system)
     # Sag: how far the lowest yarn point went down, in millimetres.
-    sag = 1e3 * (knitfem.centrelines(system, system.start_state())[..., 1].min()
-                 - knitfem.centrelines(system, x)[..., 1].min())
+    sag = 1e3 * (knitfem.centrelines(system, system.start_state()).points[:, 1].min()
+                 - knitfem.centrelines(system, x).points[:, 1].min())
     results[kind] = dict(newton_iterations=newton, sag_mm=float(sag),
                          unknowns=system.M.getSize()[0] + system.C.getSize()[0])
     PETSc.Sys.Print(f"{kind:8s} {results[kind]['unknowns']:6d} unknowns: "

@@ -47,7 +47,7 @@ for F in FORCES:
     # The pulled point: the loop head, P(s) = Σ b_i(s) p_i on its course.
     yarn, s = fabric.loads[0][0], fabric.loads[1][0]
     P = knitfem.control_points(system, x)
-    head = curve_points(P[yarn], np.atleast_1d(s))[0]
+    head = curve_points(P.yarn(yarn), np.atleast_1d(s))[0]
     curve.append(dict(force_N=F, pulled_point=head.tolist(), newton_iterations=newton))
     PETSc.Sys.Print(f"F = {1e3 * F:5.1f} mN: pulled point at y = {1e3 * head[1]:8.3f} "
                     f"mm ({newton} Newton iterations)")

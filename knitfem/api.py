@@ -273,8 +273,11 @@ def equilibrium(system, x=None, load_steps=1):
 
 
 def control_points(system, q=None):
-    """The yarns' control points (yarns, points a yarn, 3) of a state, on
-    every rank (collective).
+    """The yarns' control points of a state, on every rank (collective), as
+    ``yarn.curves.Curves``: ``points`` (N, 3) yarn after yarn (a closed
+    yarn's first three repeated at its end), ``yarn(f)`` yarn f's, ``start``
+    its offsets and ``course`` the course of every point; ``np.asarray``
+    gives the points.
 
     ``system`` a model and ``q`` its state, reduced (α) or yarn level (ε =
     Γα, say from ``system.full_state``): either is read; or ``system`` a
@@ -291,9 +294,10 @@ def control_points(system, q=None):
 
 
 def centrelines(system, q=None):
-    """Points along every yarn's centreline (yarns, points, 3) of a state,
-    as the output's time series samples them; arguments as
-    ``control_points`` (collective)."""
+    """Points along every yarn's centreline of a state, as the output's time
+    series samples them (``yarn.curves.Samples``: ``points`` (M, 3), and the
+    ``yarn`` and ``course`` of every point); arguments as ``control_points``
+    (collective)."""
     return sampled_centrelines(control_points(system, q))
 
 

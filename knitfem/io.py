@@ -2,12 +2,13 @@
 
 Centrelines are the splines sampled ``SAMPLES`` times a segment, written as
 "line" cells with point data ``radius`` (for ParaView's Tube filter, "Vary
-radius: By Scalar") and ``yarn``; time series go to XDMF + HDF5, one file a
+radius: By Scalar"), ``yarn`` and ``course`` (the course a point knits, 0
+the first knitted course); yarns have their own lengths (``curves.Curves``);
+time series go to XDMF + HDF5, one file a
 frame. Every file is written under a temporary name and renamed into place.
 """
 
 import contextlib
-import functools
 import html
 import os
 import socket
@@ -16,7 +17,6 @@ from io import BytesIO
 import h5py
 import numpy as np
 
-from knitfem.yarn import bspline
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
            "draw", "draw_panels", "animate", "VIEWS"]
@@ -34,39 +34,22 @@ def _pyplot():
 
 SAMPLES = 6
 SEGMENTS = 20000            # pieces of tube in a picture, about (``_draw_on``)
-
-
-@functools.lru_cache(maxsize=8)
-def _sampler(ncp, samples):
-    """The sparse (m, ncp) matrix of a yarn's centreline points x(s_k) =
-    Σ_a b_a(u_k) P_{i_k + a} at s = 0, 1/samples, …, ncp − 3."""
-    from scipy import sparse
-
-    nseg = ncp - 3
-    k, u = bspline.locate(np.linspace(0, nseg, nseg * samples + 1), nseg)
-    m = len(k)
-    return sparse.csr_matrix((bspline.basis(u).ravel(), (np.repeat(np.arange(m), 4),
-                              (k[:, None] + np.arange(4)).ravel())), shape=(m, ncp))
+FIXED = ("radius", "yarn", "course")        # point data of every frame
 
 
 def centrelines(P, samples=SAMPLES):
-    """Sampled centrelines of yarns P (nyarn, n, 3): points (nyarn, m, 3)."""
-    P = np.asarray(P)
-    nyarn, ncp = P.shape[:2]
-    pts = _sampler(ncp, samples) @ P.transpose(1, 0, 2).reshape(ncp, -1)
-    return pts.reshape(-1, nyarn, 3).transpose(1, 0, 2)
+    """Sampled centrelines (``curves.Samples``) of the yarns P (``Curves``)."""
+    return P.samples(samples)
 
 
 def _mesh_arrays(P, radius, point_data=None):
     pts = centrelines(P)
-    nyarn, m = pts.shape[:2]
-    first = np.arange(nyarn)[:, None] * m + np.arange(m - 1)
-    cells = np.stack([first.ravel(), first.ravel() + 1], axis=-1)
-    data = {"radius": np.full(nyarn * m, float(radius)),
-            "yarn": np.repeat(np.arange(nyarn, dtype=float), m)}
+    m = len(pts.points)
+    data = {"radius": np.full(m, float(radius)), "yarn": pts.yarn.astype(float),
+            "course": pts.course.astype(float)}
     for name, values in (point_data or {}).items():
-        data[name] = np.asarray(values).reshape(nyarn * m, -1).squeeze()
-    return pts.reshape(-1, 3), [("line", cells)], data
+        data[name] = np.asarray(values).reshape(m, -1).squeeze()
+    return pts.points, [("line", pts.segments())], data
 
 
 def write_centrelines(path, P, radius, point_data=None):
@@ -127,7 +110,7 @@ class CentrelineSeries:
     (call on rank 0).
 
         <stem>.xdmf              the index: a temporal collection of grids
-        <stem>/mesh.h5           topology, radius, yarn (constant)
+        <stem>/mesh.h5           topology, radius, yarn, course (constant)
         <stem>/<step>.h5         geometry (and point data) of one output step
 
     Each frame is written to a temporary and renamed, and the index is
@@ -161,7 +144,7 @@ class CentrelineSeries:
 
         def mesh(f):
             f["topology"] = cells[0][1]
-            for key in ("radius", "yarn"):
+            for key in FIXED:
                 f[key] = data[key]
 
         atomic_write(os.path.join(self.dir, "mesh.h5"),
@@ -189,9 +172,9 @@ class CentrelineSeries:
         return found
 
     def write(self, step, t, P, point_data=None):
-        """Frame ``step`` at time t: control points P (nyarn, n, 3)."""
+        """Frame ``step`` at time t: the yarns P (``Curves``)."""
         pts, _, data = _mesh_arrays(P, self.radius, point_data)
-        extra = {k: v for k, v in data.items() if k not in ("radius", "yarn")}
+        extra = {k: v for k, v in data.items() if k not in FIXED}
         shapes = {k: np.shape(v) for k, v in extra.items()}
 
         def frame(f):
@@ -237,8 +220,7 @@ class CentrelineSeries:
                 f'<Geometry GeometryType="XYZ">'
                 f'{self._item(frame, "geometry", three)}</Geometry>'
                 + self._attribute("position", frame, three, "geometry")
-                + self._attribute("radius", "mesh.h5", one)
-                + self._attribute("yarn", "mesh.h5", one)
+                + "".join(self._attribute(n, "mesh.h5", one) for n in FIXED)
                 + "".join(self._attribute(n, frame, s) for n, s in shapes.items())
                 + '</Grid>')
 
@@ -320,15 +302,16 @@ def _draw_on(ax, P, radius, view, extent, bodies=()):
     # at most ~SEGMENTS pieces: up to 8 straight segments a B-spline segment,
     # and on a large knit, whose loops are a few pixels wide, polylines of
     # several B-spline segments each
-    nseg = P.shape[0] * (P.shape[1] - 3)
+    nseg = len(P.points) - 3 * P.nyarn
     samples = int(np.clip(SEGMENTS // max(1, nseg), 1, 8))
     chunk = max(1, -(-nseg // SEGMENTS))
-    pts = centrelines(P, samples=samples) @ cam.T
-    nyarn, m = pts.shape[:2]
+    sampled = centrelines(P, samples=samples)
+    pts, m = sampled.points @ cam.T, np.diff(sampled.start)
     pieces = -(-(m - 1) // chunk)
-    ends = np.minimum(np.arange(pieces)[:, None] * chunk + np.arange(chunk + 1), m - 1)
-    seg = pts[:, ends].reshape(-1, chunk + 1, 3)
-    yarn = np.repeat(np.arange(nyarn), pieces)
+    yarn = np.repeat(np.arange(P.nyarn), pieces)
+    piece = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    ends = np.minimum(piece[:, None] * chunk + np.arange(chunk + 1), m[yarn, None] - 1)
+    seg = pts[sampled.start[yarn, None] + ends]
     depth = seg[:, :, 2].mean(axis=1)
     order = np.argsort(depth)
     lo, hi = _projected_box(_world_box([P], bodies) if extent is None
@@ -383,7 +366,7 @@ def _save(fig, path):
 
 
 def draw(path, P, radius, title="", view="front", extent=None, bodies=()):
-    """A PNG of the fabric P (nyarn, n, 3) seen from ``view`` (see VIEWS), its
+    """A PNG of the fabric P (``Curves``) seen from ``view`` (see VIEWS), its
     limits fitted to P (or to the world box ``extent``)."""
     box = _projected_box(_world_box([P], bodies) if extent is None else tuple(extent),
                          view, radius)

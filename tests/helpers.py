@@ -4,6 +4,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from knitfem.knit.fabric import Fabric
 from knitfem.lod.mixed import MixedModel, MixedSpace, VolumeWeights, stitch_mask
 from knitfem.model.full import FullModel, Material
 from knitfem.knit.pattern import Jersey, jersey_fabric
@@ -13,6 +14,46 @@ from knitfem.lod.volume import BoundingVolume
 
 def jersey(rows=2, cols=2, hold=None):
     return jersey_fabric(Jersey(rows, cols), hold=hold)
+
+
+def shaped(stitches, hold=None):
+    """A jersey whose course f has ``stitches[f]`` stitches, left-aligned (a
+    shaped piece: yarns of their own lengths). Course f is the first
+    8 c_f + 3 control points of the widest course's curve, and keeps the
+    interlocks of the stitches both its neighbours have; "top" holds the
+    heads of the top course."""
+    c = np.asarray(stitches)
+    j = Jersey(len(c), c.max())
+    ya, sa, yb, sb = jersey_fabric(j).contacts
+    keep = (sa < 8 * c[ya]) & (sb < 8 * c[yb])
+    fab = Fabric([j.control_points(f)[:8 * n + 3] for f, n in enumerate(c)],
+                 j.radius, contacts=(ya[keep], sa[keep], yb[keep], sb[keep]))
+    if hold == "top":
+        fab.fixed = (np.full(c[-1], len(c) - 1), j.heads(len(c) - 1)[:c[-1]])
+    return fab
+
+
+def two_courses_one_yarn(cols, hold=None):
+    """A three-course jersey whose courses 0 and 1 are one yarn, as a flat
+    knitting machine's carrier lays them: course 0, a turn at the right
+    selvedge, course 1 knitted back (its control points reversed: the same
+    curve run backwards, s ↦ n − 3 − s); course 2 is a yarn of its own.
+    "top" holds the heads of course 2."""
+    j = Jersey(3, cols)
+    P = [j.control_points(f) for f in range(3)]
+    n = len(P[0])
+    ya, sa, yb, sb = jersey_fabric(j).contacts
+
+    def joined(course, s):
+        back = course == 1
+        return np.where(course == 2, 1, 0), np.where(back, 2 * n - 3 - s, s)
+
+    fab = Fabric([np.concatenate([P[0], P[1][::-1]]), P[2]], j.radius,
+                 course=np.repeat([0, 1, 2], n),
+                 contacts=(*joined(ya, sa), *joined(yb, sb)))
+    if hold == "top":
+        fab.fixed = (np.ones(cols, int), j.heads(2))
+    return fab
 
 
 def models(comm, fabric, material=None, lod=(5, 5)):
@@ -54,6 +95,23 @@ def run(system, integrator_cls, dt, nsteps, v0=None):
 
 
 COMM = PETSc.COMM_WORLD
+
+
+def steps_from_start(system, nsteps=5, dt=1e-3):
+    """``nsteps`` backward-Euler steps from the start state at rest: the
+    state, E_el there and max |g| (0 without constraints)."""
+    from solvers.integrators import BackwardEuler
+
+    x = system.start_state()
+    v = x.duplicate()
+    v.zeroEntries()
+    integ = BackwardEuler(system, dt)
+    for n in range(nsteps):
+        integ.step(n * dt, x, v)
+    g = system.C.createVecLeft()
+    system.constraint_residual(x, g)
+    worst = g.norm(PETSc.NormType.INFINITY) if g.getSize() else 0.0
+    return x, system.elastic_energy(x), worst
 
 
 def to_scipy(A):

@@ -61,7 +61,7 @@ def test_options_database_applies_where_keywords_are_silent():
     opts.setValue("knit_cols", "4")
     try:
         fabric = knitfem.jersey(rows=2)                 # cols from the database
-        assert fabric.X.shape[1] == 8 * 4 + 3
+        assert fabric.yarn_ncp[0] == 8 * 4 + 3
         full = knitfem.full_model(fabric)
         assert full.material.EA == 123.0
         assert knitfem.material(EA=7.0).EA == 7.0       # a keyword wins
@@ -87,11 +87,12 @@ def test_reduced_model_is_sampled_and_reads_either_state():
     assert red.kind == "reduced" and red.sampling["kind"] == "sampled"
     q, v = knitfem.start(red)
     assert v.norm() == 0
-    P = knitfem.control_points(red, q)
+    P = np.asarray(knitfem.control_points(red, q))
     assert P.shape == fabric.X.shape
     eps = red.full_state(q)
     # ε = Γα formed by the embedding and by the gathered points: 2e-19 m apart
-    assert np.allclose(knitfem.control_points(red, eps), P, rtol=0, atol=1e-15)
+    assert np.allclose(np.asarray(knitfem.control_points(red, eps)), P, rtol=0,
+                       atol=1e-15)
     assert np.allclose(P, fabric.X, rtol=0, atol=1e-12)     # Γ reproduces the rest
     exact = knitfem.reduced_model(fabric, sampling="exact")
     assert getattr(exact, "sampling", None) is None
@@ -112,9 +113,9 @@ def test_free_fall_through_the_api(tmp_path):
     # error-controlled BDF2 (rtol 2e-4), measured 2.8e-3 relative
     assert drop == pytest.approx(0.5 * 9.81 * 0.02**2, rel=1e-2)
     P = knitfem.centrelines(sim)
-    assert P.ndim == 3 and P.shape[0] == 2
-    assert np.allclose(P[..., 1].mean(), knitfem.centrelines(full, full.rest_state())
-                       [..., 1].mean() - drop, rtol=0, atol=1e-6)
+    assert P.nyarn == 2 and P.points.shape[1] == 3
+    assert np.allclose(P.points[:, 1].mean(), knitfem.centrelines(
+        full, full.rest_state()).points[:, 1].mean() - drop, rtol=0, atol=1e-6)
     if out:
         with open(os.path.join(out, "summary.json")) as f:
             assert json.load(f)["steps"] == rec["steps"]

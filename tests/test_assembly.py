@@ -30,9 +30,10 @@ def test_total_mass_is_rho_times_rest_length(jersey_model):
     # and the quadrature length is the arc length of the rest splines
     u, w = bspline.gauss(12)
     length = 0.0
-    for P in fab.X:
-        s = (np.arange(fab.ncp - 3)[:, None] + u).ravel()
-        length += np.sum(np.tile(w, fab.ncp - 3)
+    for f, nseg in enumerate(fab.yarn_nseg):
+        P = fab.yarn(f)
+        s = (np.arange(nseg)[:, None] + u).ravel()
+        length += np.sum(np.tile(w, nseg)
                          * np.linalg.norm(bspline.curve_points(P, s, 1), axis=-1))
     assert np.isclose(total, 2e-5 * length, rtol=1e-4)
 

@@ -145,7 +145,8 @@ def test_body_surfaces_lie_on_the_bodies_and_are_written_and_drawn(tmp_path, bod
     assert len(mesh.cells_dict["triangle"]) == 2 * len(tri)
     assert set(mesh.point_data["body"]) == {0.0, 1.0}
     fig, ax = plt.subplots()
-    io._draw_on(ax, jersey(2, 2).X, 5e-4, "three_quarter", None, (body,))
+    fab = jersey(2, 2)
+    io._draw_on(ax, fab.curves(fab.X), 5e-4, "three_quarter", None, (body,))
     z = sorted((c.get_zorder(), type(c).__name__) for c in ax.collections)
     plt.close(fig)
     assert z[0] == (0, "PolyCollection") and z[-1][1] == "LineCollection"
@@ -285,7 +286,7 @@ def test_a_step_through_a_thin_body_is_refused(check):
     v.zeroEntries()
     for n in range(10):
         integ.step(n * 1e-2, x, v)
-    middle = x.getArray().reshape(-1, 3)[fab.ncp // 2]
+    middle = x.getArray().reshape(-1, 3)[fab.npoints // 2]
     if check:
         assert middle[1] > rod.a[1] + rod.R and model.min_collider_distance(x) > 0
     else:

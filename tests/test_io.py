@@ -20,26 +20,31 @@ def read(path):
 
 def moved(P, k):
     """Frame k: the fabric translated and sheared (every point moves)."""
-    return P + k * np.array([0.0, -1e-3, 2e-4]) + 1e-3 * k * P[..., :1]
+    X = P.points
+    return P.moved(X + k * np.array([0.0, -1e-3, 2e-4]) + 1e-3 * k * X[:, :1])
+
+
+def curves(fab):
+    return fab.curves(fab.X)
 
 
 def test_meshio_reads_every_frame_with_its_geometry(tmp_path):
-    P = jersey(2, 2).X
+    P = curves(jersey(2, 2))
     s = io.CentrelineSeries(str(tmp_path / "yarns.xdmf"), P, 5e-4)
     for k in range(3):
         s.write(10 * k, 0.1 * k, moved(P, k))
     points, cells, frames = read(tmp_path / "yarns.xdmf")
     assert [t for t, _, _ in frames] == [0.0, 0.1, 0.2]
     assert cells[0].type == "line" and np.array_equal(points, io.centrelines(P)
-                                                      .reshape(-1, 3))
+                                                      .points)
     for k, (_, data, _) in enumerate(frames):
-        expect = io.centrelines(moved(P, k)).reshape(-1, 3)
+        expect = io.centrelines(moved(P, k)).points
         assert np.array_equal(data["position"], expect)
         assert np.all(data["radius"] == 5e-4)
 
 
 def test_series_continued_keeps_frames_up_to_the_checkpoint(tmp_path):
-    P = jersey(2, 2).X
+    P = curves(jersey(2, 2))
     path = str(tmp_path / "yarns.xdmf")
     s = io.CentrelineSeries(path, P, 5e-4)
     for k in range(4):
@@ -49,9 +54,9 @@ def test_series_continued_keeps_frames_up_to_the_checkpoint(tmp_path):
     _, _, frames = read(path)
     assert [t for t, _, _ in frames] == [0.0, 0.01, 0.02]
     assert np.array_equal(frames[1][1]["position"],
-                          io.centrelines(moved(P, 1)).reshape(-1, 3))
+                          io.centrelines(moved(P, 1)).points)
     assert np.array_equal(frames[2][1]["position"],
-                          io.centrelines(moved(P, 5)).reshape(-1, 3))
+                          io.centrelines(moved(P, 5)).points)
     assert sorted(p.name for p in (tmp_path / "yarns").iterdir()) == [
         "00000000.h5", "00000001.h5", "00000002.h5", "mesh.h5"]
     assert 'Value="continues x"' in open(path).read()
@@ -85,7 +90,7 @@ def test_tubes_are_drawn_one_yarn_diameter_wide(tmp_path, view):
     diameter (2r, and 1.15 × 2r for the outline) at the axes' scale."""
     import matplotlib.pyplot as plt
 
-    P = jersey(3, 2).X
+    P = curves(jersey(3, 2))
     radius = 5e-4
     fig, ax = plt.subplots(figsize=(8, 3), dpi=110)
     io._draw_on(ax, P, radius, view, None)

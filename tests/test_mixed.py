@@ -44,7 +44,7 @@ def motions(serial):
 
 def test_all_full_is_the_full_model(serial, fabric, motions):
     full, red = serial
-    mix = mixed(full, red, np.ones(fabric.nyarn * fabric.ncp, bool))
+    mix = mixed(full, red, np.ones(fabric.npoints, bool))
     G = to_scipy(mix.space.Gamma).toarray()
     assert np.array_equal(G, np.eye(len(G)))             # Γ_mix = I, no α left
     x, xf = mix.start_state(), full.start_state()
@@ -65,7 +65,7 @@ def test_all_full_is_the_full_model(serial, fabric, motions):
 
 def test_none_full_is_the_reduced_model(serial, fabric, motions):
     full, red = serial
-    mix = mixed(full, red, np.zeros(fabric.nyarn * fabric.ncp, bool))
+    mix = mixed(full, red, np.zeros(fabric.npoints, bool))
     G, Gr = to_scipy(mix.space.Gamma), to_scipy(red.embedding.Gamma)
     assert G.shape == Gr.shape and abs(G - Gr).max() == 0
     assert abs(to_scipy(mix.M) - to_scipy(red.M)).max() <= 1e-15 * abs(
@@ -155,7 +155,7 @@ def test_point_load_vector_sums_to_the_force():
     X = fab.X.reshape(-1, 3)
     P = X[np.abs(Q).sum(1) > 0].T @ np.abs(Q[np.abs(Q).sum(1) > 0, :1]) / abs(F[0])
     from knitfem.yarn import bspline
-    head = bspline.curve_points(fab.X[1], j.heads(1)[[2]])[0]
+    head = bspline.curve_points(fab.yarn(1), j.heads(1)[[2]])[0]
     assert np.allclose(P.ravel(), head, rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match="outside"):
         pulled(j, (4, 0), F)

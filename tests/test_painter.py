@@ -24,7 +24,7 @@ SELF = PETSc.COMM_SELF
 def fabrics():
     """Two poses of a 2x2 swatch and its yarn radius."""
     fab = jersey(2, 2)
-    return fab.X, fab.X * [1.0, 0.8, 1.0], fab.radius
+    return fab.curves(fab.X), fab.curves(fab.X * [1.0, 0.8, 1.0]), fab.radius
 
 
 def test_worker_draws_the_files_drawn_in_line(tmp_path):

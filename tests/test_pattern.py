@@ -21,7 +21,8 @@ def test_control_point_count_and_interpolation():
 @pytest.mark.parametrize("rows,cols", [(2, 1), (4, 6)])
 def test_no_penetration_at_rest(rows, cols):
     j = Jersey(rows, cols, radius=1e-3)
-    d, f, g = min_yarn_distance([j.control_points(f) for f in range(rows)], 16)
+    fab = jersey_fabric(j)
+    d, f, g = min_yarn_distance(fab.curves(fab.X), 16)
     assert f != g
     assert d >= 2 * j.radius
 
@@ -53,7 +54,7 @@ def test_every_constraint_row_evaluates_its_point():
     assert np.abs(contacts.values(X[contacts.cols])).max() < 1e-15 * j.scale
     assert np.abs(holds.residual(X)).max() < 1e-15
     ya, sa, yb, sb = fab.contacts
-    P = fab.X
+    P = [fab.yarn(f) for f in range(fab.nyarn)]
     r, t_a = contacts.factors(X[contacts.cols])[1][:, :2].transpose(1, 0, 2)
     sep = np.stack([bspline.curve_points(P[a], s) - bspline.curve_points(P[b], t)
                     for a, s, b, t in zip(ya, sa, yb, sb)])

@@ -137,7 +137,7 @@ def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol)
     yarns determine, and round-off then grows in the null space."""
     fab = jersey(3, 3)
     full, red = models(COMM, fab, Material(EA=5.0, EI=1e-6), lod=(4, 4))
-    n = 3 * fab.nyarn * fab.ncp
+    n = 3 * fab.npoints
     v0 = np.tile([0.01, 0.02, -0.005], n // 3)              # rigid translation
     _, xf, vf = run(full, integrator, dt, 15, v0)
     nv = 3 * red.embedding.volume.size

@@ -29,14 +29,14 @@ def test_natural_fabric_has_the_loop_length_asked_and_no_natural_curvature():
     j = Jersey(3, 4)
     template = jersey_fabric(j)
     fab = natural_fabric(j, template, 20e-3, scale=(1.2, 1.0, 1.0))
-    ell = yarn_lengths(fab.X, fab.closed) / j.cols
+    ell = yarn_lengths(fab) / j.cols
     assert ell == pytest.approx(np.full(3, 20e-3 * ell[0] / ell.mean()), rel=1e-13)
     assert ell.mean() == pytest.approx(20e-3, rel=1e-13)
-    el = YarnElements(fab.X.reshape(-1, 3), fab.connectivity(0, fab.nyarn), 1, 1, 1,
+    el = YarnElements(fab.X, fab.connectivity(0, fab.nyarn), 1, 1, 1,
                       natural=fab.natural)
     assert not el.kappa0.any() and fab.separation == 2 * j.radius
     # the start is the template stretched along the courses about its centroid
-    c = template.X.reshape(-1, 3).mean(axis=0)
+    c = template.X.mean(axis=0)
     assert np.allclose(fab.start_X - c, (template.X - c) * [1.2, 1.0, 1.0],
                        rtol=0, atol=1e-15)
     back = stress_free(fab)

@@ -208,14 +208,14 @@ def test_course_blocks_hold_their_own_constraints(model):
     courses and exactly the constraints among them (a contact of course k
     when k + 1 is in too), and together they cover this rank's courses and
     constraints."""
-    ncp, cons_asm = model.fabric.ncp, model.constraints
+    first, cons_asm = model.fabric.yarn_start, model.constraints
     yarn_of_row = np.repeat(cons_asm.owner, 3)
     contact = np.repeat(cons_asm.kind == "contact", 3)
     lay = model.layout
     covered, rows_seen = set(), set()
     for coords, rows in model.yarn_blocks(2, 1):
-        courses = np.unique(coords // (3 * ncp))
-        assert len(coords) == 3 * ncp * len(courses)
+        courses = np.unique(np.searchsorted(first, coords // 3, side="right") - 1)
+        assert len(coords) == 3 * (first[courses[-1] + 1] - first[courses[0]])
         assert np.all(np.diff(courses) == 1) and len(courses) <= 4
         lo, hi = courses[0], courses[-1] + 1
         inside = (yarn_of_row >= lo) & (yarn_of_row + contact < hi)

@@ -24,7 +24,7 @@ L, G = 0.1, 9.81
 
 
 def static(fabric, material, comm=SELF):
-    """Solve; return the model, the control points (all, on every rank), the
+    """Solve; return the model, the control points (N, 3) (all, on every rank), the
     solver and, for every Newton iteration (the SNES monitor), |F| and the
     max norm of the coordinates' update."""
     model = FullModel(comm, fabric, material)
@@ -40,7 +40,7 @@ def static(fabric, material, comm=SELF):
     x = model.rest_state()
     solver.solve(x)
     assert solver.snes.getConvergedReason() > 0
-    return model, gather(comm, x).reshape(fabric.nyarn, fabric.ncp, 3), solver, norms
+    return model, gather(comm, x).reshape(-1, 3), solver, norms
 
 
 def centreline(P, n=2001):
@@ -85,13 +85,13 @@ def test_small_deflection_cantilever_tip():
     """Euler–Bernoulli: tip drop q L⁴ / (8 EI), q = ρ g (q L³/EI = 0.05)."""
     EI, rho = 1.962e-4, 1e-3
     _, P, _, _ = cantilever(EI, rho)
-    tip = bspline.curve_points(P[0], np.array([40.0]))[0]
+    tip = bspline.curve_points(P, np.array([40.0]))[0]
     assert -tip[1] == pytest.approx(rho * G * L**4 / (8 * EI), rel=0.01)
 
 
 def test_catenary_sag():
     _, P, _, _ = catenary()
-    sag = -centreline(P[0])[:, 1].min()
+    sag = -centreline(P)[:, 1].min()
     assert sag == pytest.approx(catenary_sag(L, 0.08), rel=0.01)
 
 
@@ -119,7 +119,7 @@ def test_large_deflection_cantilever_against_elastica():
     drop, pull = elastica(alpha)
     assert drop > 0.3 and pull > 0.05                  # far from linear
     _, P, _, _ = cantilever(rho * G * L**3 / alpha, rho)
-    tip = bspline.curve_points(P[0], np.array([40.0]))[0]
+    tip = bspline.curve_points(P, np.array([40.0]))[0]
     assert -tip[1] / L == pytest.approx(drop, rel=0.02)
     assert (L - tip[0]) / L == pytest.approx(pull, rel=0.02)
 

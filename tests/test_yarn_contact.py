@@ -35,7 +35,7 @@ def crossing(gap=0.5, nseg=8, hold=False):
 def pushed(fab, depth):
     """The crossing's control points with the two middles pushed towards
     each other by ``depth`` r each, smoothly along the yarns."""
-    P = fab.X.copy()
+    P = fab.X.copy().reshape(2, -1, 3)
     bump = depth * R * np.exp(-np.linspace(-2, 2, P.shape[1]) ** 2)
     P[0, :, 2] -= bump
     P[1, :, 2] += bump
@@ -205,7 +205,7 @@ def test_tangent_pattern_follows_the_pairs():
 
 
 def test_option_turns_it_off():
-    """-knit_yarn_contact off builds the full model without it."""
+    """-knit_yarn_contact on|off (off by default in knitfem run)."""
     from knitfem.cli.commands import model_options
     from knitfem.cli.options import KnitOptions
 
@@ -213,6 +213,8 @@ def test_option_turns_it_off():
     opts.setValue("-knit_yarn_contact", "off")
     try:
         assert model_options(KnitOptions())[3] is False
+        opts.setValue("-knit_yarn_contact", "on")
+        assert model_options(KnitOptions())[3] is True
     finally:
         opts.delValue("-knit_yarn_contact")
-    assert model_options(KnitOptions())[3] is True
+    assert model_options(KnitOptions())[3] is False          # off by default

@@ -71,7 +71,7 @@ def dofs(comm):
     # constraint_kind lists every constraint of the fabric on every rank
     contacts, fixed = (int(np.sum(full.constraint_kind == kind))
                        for kind in ("contact", "fixed"))
-    ncp_yarn = full.layout.ncp_per_yarn
+    ncp_yarn = int(fabric.yarn_ncp.max())
     dof = full.M.getSize()[0]
     reduced_dofs = emb.Gamma.getSize()[1]
     rec = dict(rows=jersey.rows, cols=jersey.cols, control_points_per_yarn=ncp_yarn,
@@ -123,15 +123,16 @@ def pattern(comm):
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
-    P = fabric.open_splines(fabric.X)
-    dist, f, g = min_yarn_distance(list(P))
+    P = fabric.curves(fabric.X)
+    dist, f, g = min_yarn_distance(P)
     name = f"{'tube' if jersey.closed else 'jersey'}_{jersey.rows}x{jersey.cols}"
     base = os.path.join(out, name)
     io.write_centrelines(base + ".vtu", P, jersey.radius)
     io.draw(base + ".png", P, jersey.radius, title=name.replace("_", " "),
             view="three_quarter" if jersey.closed else "front")
     PETSc.Sys.Print(f"wrote {base}.vtu and {base}.png; {fabric.nyarn} yarns of "
-                    f"{fabric.ncp} control points, min distance between yarns "
+                    f"{fabric.yarn_ncp.max()} control points, min distance "
+                    f"between yarns "
                     f"{dist / (2 * jersey.radius):.3f} x 2r")
 
 
@@ -154,8 +155,7 @@ def relax(comm):
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
     template = jersey_fabric(jersey)
-    ell0 = loop_length(yarn_lengths(template.X, template.closed),
-                       np.full(template.nyarn, jersey.cols))
+    ell0 = loop_length(yarn_lengths(template), np.full(template.nyarn, jersey.cols))
     ell = opts.getReal("loop_length", float(f"{ell0:.4g}"), "yarn length a stitch "
                        "[m] (default: the unscaled template's)", positive=True)
     scale = opts.getReals("template_scale", (1.0, 1.0, 1.0), "start from the "
@@ -207,7 +207,7 @@ def relax(comm):
                         fabric.X, P, fabric.contacts, fabric.separation,
                         rec["loop_length_m"]).save(os.path.join(out.path,
                                                                 "relaxed.h5"))
-            io.draw(os.path.join(out.path, "relaxed.png"), fabric.open_splines(P),
+            io.draw(os.path.join(out.path, "relaxed.png"), fabric.curves(P),
                     jersey.radius, view="three_quarter",
                     title=f"{jersey.rows}x{jersey.cols} jersey relaxed: k_c "
                           f"{rec['k_c']:.2f}, k_w {rec['k_w']:.2f}")
@@ -647,7 +647,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
         out = out.path
         _, pts0 = sim.geometry()
         if comm.rank == 0:
-            sim.initial_lowest = pts0[..., 1].min()
+            sim.initial_lowest = pts0.points[:, 1].min()
         try:
             its = solver.solve(sim.x, monitor=lambda i, load, snes: PETSc.Sys.Print(
                 f"load step {i}/{load_steps}  load {load:.2f}  newton "
@@ -676,7 +676,7 @@ def run_static(comm, system, scene, out, load_steps, StaticSolver):
 
 
 def fitting_metrics(fabric, P, nq=4):
-    """Quality of the stitches fitting for deformed control points P.
+    """Quality of the stitches fitting for deformed control points P (N, 3).
 
     max and RMS Green–Lagrange axial strain, the smallest centreline distance
     between different yarns over 2r (penetration when < 1) and the largest
@@ -685,10 +685,10 @@ def fitting_metrics(fabric, P, nq=4):
     from knitfem.contact import constraints as cons
     from knitfem.yarn.elements import YarnElements
 
-    el = YarnElements(fabric.X.reshape(-1, 3), fabric.connectivity(0, fabric.nyarn),
+    el = YarnElements(fabric.X, fabric.connectivity(0, fabric.nyarn),
                       1.0, 1.0, 0.0, nq=nq)
     e = el.strain(P.reshape(-1, 3))
-    dist = min_yarn_distance(list(P), 16)[0]
+    dist = min_yarn_distance(fabric.curves(P), 16)[0]
     contacts, _ = cons.build(fabric)
     res = np.abs(contacts.values(P.reshape(-1, 3)[contacts.cols])).max(axis=1)
     return dict(max_strain=float(np.abs(e).max()),
@@ -719,16 +719,17 @@ def deform(comm):
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
-    volume = BoundingVolume.around(fabric.X.reshape(-1, 3), *lod, margin=jersey.radius)
-    params = volume.embed(fabric.X.reshape(-1, 3))
+    volume = BoundingVolume.around(fabric.X, *lod, margin=jersey.radius)
+    params = volume.embed(fabric.X)
     try:
         moved = volume.deformed(mode, amount)
     except ValueError as err:
         raise KnitError(f"-knit_mode {mode} -knit_amount {amount:g}: {err}") from None
     cols, vals = moved.weights(*params)
-    P = np.einsum("na,nai->ni", vals, moved.flat[cols]).reshape(fabric.X.shape)
+    P = np.einsum("na,nai->ni", vals, moved.flat[cols])
     rec = dict(mode=mode, amount=amount, lod=list(lod), rows=jersey.rows,
                cols=jersey.cols, **fitting_metrics(fabric, P))
+    P = fabric.curves(P)
     base = os.path.join(out, f"{mode}")
     io.write_centrelines(base + ".vtu", P, jersey.radius)
     moved.save(base + "_volume.vtu")

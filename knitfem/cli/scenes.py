@@ -28,7 +28,6 @@ are taken where the turned start puts them).
 
 import numpy as np
 
-from knitfem.yarn import bspline
 from knitfem.contact.colliders import Sphere
 from knitfem.knit.fabric import Fabric
 from knitfem.knit.pattern import Jersey, jersey_fabric
@@ -80,10 +79,8 @@ def tilted(fabric, degrees):
     c, s = np.cos(theta), np.sin(theta)
     R = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
     yarn, s_fixed = fabric.fixed
-    start = fabric.start_points()
-    held = np.stack([bspline.curve_points(start[f], np.atleast_1d(t),
-                                          closed=fabric.closed)[0]
-                     for f, t in zip(yarn, s_fixed)])
+    cols, b = fabric.point_rows(yarn, s_fixed)
+    held = np.einsum("na,nai->ni", b, fabric.start_points()[cols])
     return fabric.rotated(R, held.mean(axis=0))
 
 

@@ -69,7 +69,8 @@ class ConstraintAssembly:
     Collective on ``comm``. ``C`` is the Jacobian (rows: this rank's
     constraints; columns: the yarn coordinates), ``kind`` the kind of every
     vector constraint in global order ("contact", "fixed", "clamped"),
-    ``count`` their number.
+    ``reach`` (count, 2) the first and last yarn each one reads, ``count``
+    their number.
     """
 
     def __init__(self, comm, layout, contacts, holds):
@@ -83,6 +84,10 @@ class ConstraintAssembly:
             if len(owner) else np.zeros(0, "<U7")
         self.owner = owner[order]
         self.count = len(owner)
+        ends = np.stack([contacts.cols.min(axis=1), contacts.cols.max(axis=1)], 1)
+        self.reach = np.concatenate([
+            np.searchsorted(layout.yarn_offset, ends, side="right") - 1,
+            np.repeat(holds.owner[:, None], 2, axis=1)]).reshape(-1, 2)[order]
         lo, hi = np.searchsorted(owner[order], [layout.yarn_start, layout.yarn_end])
         self.start, self.nlocal = int(lo), int(hi - lo)
         cpos, hpos = position[:nct], position[nct:]

@@ -1,7 +1,8 @@
 """Constraints on yarn control points: persistent contacts and world holds.
 
 A yarn point P_f(s) = Σ_a b_a(u) p_{f, k+a} (k, u from s) is linear in the
-control points. World constraints are linear in ε:
+control points (``Fabric.point_rows``; yarns of their own lengths). World
+constraints are linear in ε:
 
     fixed point   P_f(s)  = x₀,       clamped tangent   P_f'(s) = X_f'(s).
 
@@ -44,9 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from knitfem.yarn import bspline
 
-__all__ = ["Contacts", "Holds", "point_rows", "contacts", "fixed_points", "build"]
+__all__ = ["Contacts", "Holds", "contacts", "fixed_points", "build"]
 
 
 @dataclass
@@ -146,26 +146,15 @@ class Contacts:
                                             self.scale, self.rest)))
 
 
-def point_rows(offset, s, ncp, closed=False, nu=0):
-    """B-spline weights of d^nu P/ds^nu at s: (cols (n,4), vals (n,4)).
-
-    offset is the global index of each point's yarn's first control point;
-    the yarns have ncp control points and are closed or open.
-    """
-    k, u = bspline.locate(s, bspline.segments(ncp, closed), closed)
-    cols = np.asarray(offset)[..., None] + bspline.span(k, ncp, closed)
-    return cols, bspline.basis(u, nu)
-
-
-def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X,
-             separation=None):
-    """Contacts of P_a(s_a) with P_b(s_b), invariants taken at rest X (ncp, 3),
-    the distance |R| held ``separation`` where given (R ⟂ T_a, T_b: the
-    parameters are the rest's closest approach)."""
-    ca, va = point_rows(yarn_offset[yarn_a], s_a, ncp, closed)
-    cb, vb = point_rows(yarn_offset[yarn_b], s_b, ncp, closed)
-    da = point_rows(yarn_offset[yarn_a], s_a, ncp, closed, nu=1)[1]
-    db = point_rows(yarn_offset[yarn_b], s_b, ncp, closed, nu=1)[1]
+def contacts(yarn_a, s_a, yarn_b, s_b, fabric, X, separation=None):
+    """Contacts of P_a(s_a) with P_b(s_b) on the yarns of ``fabric``
+    (``Fabric.point_rows``), invariants taken at rest X (N, 3), the distance
+    |R| held ``separation`` where given (R ⟂ T_a, T_b: the parameters are the
+    rest's closest approach)."""
+    ca, va = fabric.point_rows(yarn_a, s_a)
+    cb, vb = fabric.point_rows(yarn_b, s_b)
+    da = fabric.point_rows(yarn_a, s_a, nu=1)[1]
+    db = fabric.point_rows(yarn_b, s_b, nu=1)[1]
     zero = np.zeros((len(ca), 4))
     w = np.concatenate([va, -vb], axis=1)                        # r
     ta = np.concatenate([da, zero], axis=1)                      # t_a
@@ -183,10 +172,10 @@ def contacts(yarn_a, s_a, yarn_b, s_b, yarn_offset, ncp, closed, X,
     return Contacts(np.asarray(yarn_a), cols, U, V, scale, rest)
 
 
-def fixed_points(yarn, s, yarn_offset, ncp, closed, X, nu=0):
+def fixed_points(yarn, s, fabric, X, nu=0):
     """Fixed-point rows P_f(s) = x₀ (nu = 0), or clamped tangents
     P_f'(s) = X_f'(s) (nu = 1), with the right-hand side taken at X."""
-    cols, vals = point_rows(yarn_offset[yarn], s, ncp, closed, nu)
+    cols, vals = fabric.point_rows(yarn, s, nu)
     rhs = np.einsum("na,nai->ni", vals, X[cols])
     n = len(s)
     return Holds(np.asarray(yarn), np.arange(0, 4 * n + 1, 4), cols.ravel(),
@@ -196,10 +185,8 @@ def fixed_points(yarn, s, yarn_offset, ncp, closed, X, nu=0):
 def build(fabric):
     """(Contacts, Holds) of a ``Fabric``: contact invariants at its rest X,
     the holds at its start state (``Fabric.start_points``)."""
-    offset = np.arange(fabric.nyarn + 1) * fabric.ncp
-    yarns = fabric.ncp, fabric.closed
-    X, X0 = fabric.X.reshape(-1, 3), fabric.start_points().reshape(-1, 3)
+    X0 = fabric.start_points()
     ya, sa, yb, sb = fabric.contacts
-    holds = Holds.concatenate([fixed_points(*fabric.fixed, offset, *yarns, X0),
-                               fixed_points(*fabric.clamped, offset, *yarns, X0, nu=1)])
-    return contacts(ya, sa, yb, sb, offset, *yarns, X, fabric.separation), holds
+    holds = Holds.concatenate([fixed_points(*fabric.fixed, fabric, X0),
+                               fixed_points(*fabric.clamped, fabric, X0, nu=1)])
+    return contacts(ya, sa, yb, sb, fabric, fabric.X, fabric.separation), holds

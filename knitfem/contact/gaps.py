@@ -19,36 +19,48 @@ import numpy as np
 __all__ = ["YarnGaps"]
 
 
+def _flat(pts):
+    """(points (M, 3), offsets (nyarn + 1,)) of sampled centrelines given as
+    ``yarn.curves.Samples`` or as an array (nyarn, m, 3)."""
+    if hasattr(pts, "start"):
+        return np.asarray(pts.points, dtype=float), np.asarray(pts.start)
+    pts = np.asarray(pts, dtype=float)
+    return pts.reshape(-1, 3), np.arange(len(pts) + 1) * pts.shape[1]
+
+
 class YarnGaps:
     """D of frames of one knit, and the smallest over the frames seen.
 
     Parameters
     ----------
-    pts : (nyarn, m, 3)
+    pts : yarn.curves.Samples or ndarray (nyarn, m, 3)
         Sampled centrelines of the first frame (arclength and closure).
     radius : float
         Yarn radius r.
     """
 
     def __init__(self, pts, radius):
-        pts = np.asarray(pts, dtype=float)
+        P, start = _flat(pts)
         self.radius = float(radius)
-        chords = np.linalg.norm(np.diff(pts, axis=1), axis=-1)
-        s = np.concatenate([np.zeros((len(pts), 1)), np.cumsum(chords, axis=1)],
-                           axis=1)
-        length = s[:, -1]
-        closed = np.linalg.norm(pts[:, 0] - pts[:, -1], axis=-1) \
+        count = np.diff(start)
+        self.yarn = np.repeat(np.arange(len(count)), count)
+        chords = np.linalg.norm(np.diff(P, axis=0), axis=-1)
+        chords[start[1:-1] - 1] = 0.0                   # no chord between yarns
+        s = np.concatenate([[0.0], np.cumsum(chords)])
+        self.s = s - s[start[:-1]][self.yarn]
+        first, last = start[:-1], start[1:] - 1
+        length = self.s[last]
+        closed = np.linalg.norm(P[first] - P[last], axis=-1) \
             < 1e-3 * np.maximum(length, 1e-12)
-        self.s = s.ravel()
-        self.perimeter = np.repeat(np.where(closed, length, np.inf), pts.shape[1])
-        self.yarn = np.repeat(np.arange(len(pts)), pts.shape[1])
+        self.perimeter = np.where(closed, length, np.inf)[self.yarn]
         self.smallest, self.time = np.inf, None
 
     def frame(self, pts):
-        """D of one frame of sampled centrelines (nyarn, m, 3)."""
+        """D of one frame of sampled centrelines (as given to the
+        constructor)."""
         from scipy.spatial import cKDTree          # on first use
 
-        P = np.asarray(pts, dtype=float).reshape(-1, 3)
+        P = _flat(pts)[0]
         r = self.radius
         pairs = cKDTree(P).query_pairs(2.0 * r, output_type="ndarray")
         if not len(pairs):

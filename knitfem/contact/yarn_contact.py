@@ -98,36 +98,44 @@ class YarnContact:
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
         self.margin = margin * r
-        nyarn, ncp, nseg = fabric.nyarn, fabric.ncp, fabric.nseg
-        self.nseg, self.ncp = nseg, ncp
-        k = np.repeat(np.arange(nseg), samples)
-        u = np.tile(np.arange(samples) / samples, nseg)
-        if not fabric.closed:
-            k, u = np.append(k, nseg - 1), np.append(u, 1.0)
-        m = len(k)
-        cols = bspline.span(k, ncp, fabric.closed)
-        first = np.arange(nyarn)[:, None, None] * ncp
-        self.S = sp.csr_matrix(
-            (np.tile(bspline.basis(u).ravel(), nyarn),
-             (np.repeat(np.arange(nyarn * m), 4), (first + cols[None]).ravel())),
-            shape=(nyarn * m, nyarn * ncp))
+        rows, cols, vals, edges, segment, yarn, param = ([] for _ in range(7))
+        nv = nseg_total = 0
+        for f in range(fabric.nyarn):           # set-up only: a few arrays a yarn
+            ncp, nseg = int(fabric.yarn_ncp[f]), int(fabric.yarn_nseg[f])
+            closed = bool(fabric.closed[f])
+            k = np.repeat(np.arange(nseg), samples)
+            u = np.tile(np.arange(samples) / samples, nseg)
+            if not closed:
+                k, u = np.append(k, nseg - 1), np.append(u, 1.0)
+            m = len(k)
+            rows.append(nv + np.repeat(np.arange(m), 4))
+            cols.append((fabric.yarn_start[f] + bspline.span(k, ncp, closed)).ravel())
+            vals.append(bspline.basis(u).ravel())
+            j = np.arange(m if closed else m - 1)
+            edges.append(nv + np.stack([j, (j + 1) % m], -1))
+            segment.append(nseg_total + k[j])
+            yarn.append(np.full(m, f))
+            param.append(k + u)
+            nv, nseg_total = nv + m, nseg_total + nseg
+        cat = (lambda parts, shape: np.concatenate(parts) if parts
+               else np.zeros(shape, np.int64))
+        self.S = sp.csr_matrix((cat(vals, 0), (cat(rows, 0), cat(cols, 0))),
+                               shape=(nv, fabric.npoints))
         self.D = sp.kron(self.S, sp.identity(3), format="csr")
-        j = np.arange(m if fabric.closed else m - 1)
-        ends = np.stack([j, (j + 1) % m], -1)
-        self.edges = (np.arange(nyarn)[:, None, None] * m + ends[None]).reshape(-1, 2)
-        # the segment of every edge
-        self.edge_segment = (np.arange(nyarn)[:, None] * nseg + k[j][None]).ravel()
-        self.nseg_total = nyarn * nseg
-        self.sample_yarn = np.repeat(np.arange(nyarn), m)
-        self.sample_param = np.tile(k + u, nyarn)
+        self.edges = cat(edges, (0, 2))
+        self.edge_segment = cat(segment, 0)        # the segment of every edge
+        self.nseg_total = nseg_total
+        self.sample_yarn = cat(yarn, 0)
+        self.sample_param = cat(param, 0).astype(float)
+        first = np.searchsorted(self.sample_yarn, np.arange(fabric.nyarn))
+        self.sample_index = np.arange(nv) - first[self.sample_yarn]   # along its yarn
         V = self.S @ fabric.X.reshape(-1, 3)
         self.mesh = ipctk.CollisionMesh(_fortran(V), self.edges.astype(np.int32),
                                         np.zeros((0, 3), np.int32))
         edge = np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
         half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
         self.run = 2 * half
-        self.per_yarn = m
-        self.mesh.can_collide = self._filter(fabric, m, window)
+        self.mesh.can_collide = self._filter(fabric, window)
         self.collisions, self.built = ipctk.NormalCollisions(), None
         self.candidates, self.candidates_at = ipctk.Candidates(), None
         clearance = self._clearance(V, band * r)
@@ -137,10 +145,10 @@ class YarnContact:
         self.pairs = self.segment_pairs(fabric.X.reshape(-1, 3), self.margin)
         self.missed = 0
 
-    def _filter(self, fabric, m, window):
+    def _filter(self, fabric, window):
         """The toolkit's filter of the sample pairs that may touch."""
-        i = np.arange(len(self.sample_yarn)) % m
-        base = self.sample_yarn * (m + 2)
+        i = self.sample_index
+        base = self.sample_yarn * (i.max(initial=0) + 3)
         runs = [ipctk.make_vertex_patches_filter(
             (base + (i + shift) // self.run).astype(np.int32))
             for shift in (0, self.run // 2)]
@@ -274,8 +282,8 @@ class YarnContact:
 
     def samples_may_touch(self, i, j):
         """The toolkit's filter (``_filter``) on sample pairs, vectorised."""
-        m, w = self.per_yarn, self.run
-        li, lj = i % m, j % m
+        w = self.run
+        li, lj = self.sample_index[i], self.sample_index[j]
         apart = (li // w != lj // w) & ((li + w // 2) // w != (lj + w // 2) // w)
         ok = (self.sample_yarn[i] != self.sample_yarn[j]) | apart
         key = np.minimum(i, j) * len(self.sample_yarn) + np.maximum(i, j)

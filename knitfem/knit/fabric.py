@@ -1,8 +1,8 @@
 """What a scene hands to a model: yarns at rest and their constraints.
 
 A ``Fabric`` is pure geometry (metres): the rest control points of every yarn
-(all yarns have the same number of control points), the contact pairs that
-hold the knit together, and the world constraints (fixed points, clamped
+(yarns of their own lengths, concatenated yarn after yarn), the contact pairs
+that hold the knit together, and the world constraints (fixed points, clamped
 tangents). Models (full or reduced) are built from it.
 """
 
@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from knitfem.yarn import bspline
+from knitfem.yarn.curves import Curves
 
 __all__ = ["Fabric"]
 
@@ -26,9 +27,16 @@ class Fabric:
     Attributes
     ----------
     X : ndarray
-        (nyarn, ncp, 3) rest control points.
+        (N, 3) rest control points of all yarns, yarn after yarn (given as
+        (nyarn, ncp, 3) for yarns of one length, or as a list of (n_f, 3)).
     radius : float
         Yarn radius (m).
+    yarn_start : ndarray
+        (nyarn + 1,) offsets: yarn f's control points are
+        X[yarn_start[f]:yarn_start[f + 1]] (derived when X is given by yarn).
+    course : ndarray
+        (N,) the course every control point knits, 0 the first knitted
+        course (default: yarn f knits course f).
     contacts : tuple
         (yarn_a, s_a, yarn_b, s_b): P_a(s_a) − P_b(s_b) = d_ab.
     fixed : tuple
@@ -51,20 +59,26 @@ class Fabric:
         Rigid bodies the yarns keep out of (``colliders``).
     friction : float
         Coulomb coefficient μ between the yarns and the bodies.
-    closed : bool
-        Every yarn a closed curve (a course knitted in the round): ncp
-        segments, control points read modulo ncp (``bspline``).
-    natural : the yarn is straight at rest (natural curvature κ₀ = 0): X
-        gives the rest lengths only, and the loops are bent (prestressed);
-        else X is a stress-free template, κ₀ its curvature.
-    start_X : (nyarn, ncp, 3) control points of the start state where it is
-        not the rest turned (a relaxed knit, a scaled template), or None.
-    separation : the distance the contacts hold between the two centrelines
-        (2r for yarns that touch), or None for the rest's.
+    closed : ndarray
+        (nyarn,) bool, or one bool for every yarn: a closed curve (a course
+        knitted in the round) of n_f segments, control points read modulo
+        n_f (``bspline``).
+    natural : bool
+        The yarn is straight at rest (natural curvature κ₀ = 0): X gives the
+        rest lengths only, and the loops are bent (prestressed); else X is a
+        stress-free template, κ₀ its curvature.
+    start_X : ndarray or None
+        (N, 3) control points of the start state where it is not the rest
+        turned (a relaxed knit, a scaled template).
+    separation : float or None
+        The distance the contacts hold between the two centrelines (2r for
+        yarns that touch), or None for the rest's.
     """
 
     X: np.ndarray
     radius: float
+    yarn_start: np.ndarray = None
+    course: np.ndarray = None
     contacts: tuple = field(default_factory=lambda: (np.zeros(0, int), np.zeros(0),
                                                     np.zeros(0, int), np.zeros(0)))
     fixed: tuple = field(default_factory=_empty_points)
@@ -75,49 +89,100 @@ class Fabric:
     start: tuple = field(default_factory=lambda: (np.eye(3), np.zeros(3)))
     bodies: tuple = ()
     friction: float = 0.0
-    closed: bool = False
+    closed: np.ndarray = False
     natural: bool = False
     start_X: np.ndarray = None
     separation: float = None
 
+    def __post_init__(self):
+        if self.yarn_start is None:
+            one = isinstance(self.X, np.ndarray) and self.X.ndim == 2
+            yarns = [np.asarray(P, dtype=float) for P in ([self.X] if one else self.X)]
+            self.yarn_start = np.cumsum([0] + [len(P) for P in yarns])
+            self.X = np.concatenate(yarns) if yarns else np.zeros((0, 3))
+        self.yarn_start = np.asarray(self.yarn_start, dtype=np.int64)
+        self.closed = np.broadcast_to(np.asarray(self.closed, bool), (self.nyarn,))
+        if self.course is None:
+            self.course = self.yarn_of
+        self.course = np.asarray(self.course, dtype=np.int64)
+
     @property
     def nyarn(self):
-        return self.X.shape[0]
+        return len(self.yarn_start) - 1
 
     @property
-    def ncp(self):
-        return self.X.shape[1]
+    def npoints(self):
+        """Control points of all yarns, N."""
+        return int(self.yarn_start[-1])
 
     @property
-    def nseg(self):
-        """Segments (elements) a yarn."""
-        return bspline.segments(self.ncp, self.closed)
+    def yarn_ncp(self):
+        """Control points (nyarn,) of each yarn, n_f."""
+        return np.diff(self.yarn_start)
+
+    @property
+    def yarn_nseg(self):
+        """Segments (elements) (nyarn,) of each yarn."""
+        return bspline.segments(self.yarn_ncp, self.closed)
+
+    @property
+    def yarn_of(self):
+        """The yarn (N,) of every control point."""
+        return np.repeat(np.arange(self.nyarn), self.yarn_ncp)
+
+    def yarn(self, f):
+        """Rest control points (n_f, 3) of yarn f."""
+        return self.X[self.yarn_start[f]:self.yarn_start[f + 1]]
+
+    def segments(self, yarn_start, yarn_end):
+        """(yarn f, segment k) of every segment of yarns [start, end), yarn
+        after yarn."""
+        f = np.arange(yarn_start, yarn_end)
+        nseg = self.yarn_nseg[f]
+        first = np.concatenate([[0], np.cumsum(nseg)])
+        return np.repeat(f, nseg), np.arange(first[-1]) - np.repeat(first[:-1], nseg)
 
     def connectivity(self, yarn_start, yarn_end):
         """Global control points (elements, 4) of the segments of yarns
-        [start, end), yarn after yarn (control point f · ncp + i)."""
-        first = np.arange(yarn_start, yarn_end)[:, None, None] * self.ncp
-        return (first + bspline.span(np.arange(self.nseg), self.ncp, self.closed)
-                ).reshape(-1, 4)
+        [start, end), yarn after yarn (yarn f's k-th blends control points
+        yarn_start[f] + span(k))."""
+        f, k = self.segments(yarn_start, yarn_end)
+        return self.yarn_start[f][:, None] + bspline.span(
+            k, self.yarn_ncp[f], self.closed[f])
 
-    def open_splines(self, P):
-        """The same curves as open splines, for output and drawing: a closed
-        yarn's first three control points repeated at its end (nyarn, ncp + 3, 3)."""
-        P = np.asarray(P)
-        return np.concatenate([P, P[:, :3]], axis=1) if self.closed else P
+    def point_rows(self, yarn, s, nu=0):
+        """B-spline weights of d^nu P_f/ds^nu at P_f(s) for yarns ``yarn``
+        and parameters s (n,): (global control points (n, 4), weights (n, 4))."""
+        yarn = np.asarray(yarn, dtype=np.int64)
+        ncp, closed = self.yarn_ncp[yarn], self.closed[yarn]
+        k, u = bspline.locate(s, bspline.segments(ncp, closed), closed)
+        return (self.yarn_start[yarn][:, None] + bspline.span(k, ncp, closed),
+                bspline.basis(u, nu))
+
+    def curves(self, P):
+        """The yarns with control points P (N, 3) as open splines, for output
+        and drawing (``curves.Curves``): a closed yarn's first three control
+        points repeated at its end."""
+        extra = 3 * self.closed
+        ncp = self.yarn_ncp + extra
+        start = np.concatenate([[0], np.cumsum(ncp)])
+        f = np.repeat(np.arange(self.nyarn), ncp)
+        i = np.arange(start[-1]) - start[f]
+        index = self.yarn_start[f] + np.where(i < self.yarn_ncp[f], i,
+                                              i - self.yarn_ncp[f])
+        return Curves(np.asarray(P).reshape(-1, 3)[index], start, self.course[index])
 
     def load_vector(self, yarn_start, yarn_end):
         """Generalised forces of the point loads on yarns [start, end):
         F at P_f(s), s = k + u, adds b_a(u) F to control point k + a of yarn f.
         Returns (control points of those yarns, 3)."""
-        Q = np.zeros((yarn_end - yarn_start, self.ncp, 3))
+        first, last = self.yarn_start[yarn_start], self.yarn_start[yarn_end]
+        Q = np.zeros((last - first, 3))
         yarn, s, F = self.loads
         mine = (yarn >= yarn_start) & (yarn < yarn_end)
-        k, u = bspline.locate(s[mine], self.nseg, self.closed)
-        idx = (yarn[mine] - yarn_start, bspline.span(k, self.ncp, self.closed))
-        np.add.at(Q, (idx[0][:, None], idx[1]),
-                  bspline.basis(u)[..., None] * np.asarray(F)[mine][:, None])
-        return Q.reshape(-1, 3)
+        cols, b = self.point_rows(yarn[mine], np.asarray(s)[mine])
+        np.add.at(Q, cols - first, b[..., None] * np.asarray(F)[mine][:, None])
+        return Q
 
     def turn(self, points):
         """Points (…, 3) turned as the start turns the fabric (``start``)."""
@@ -125,14 +190,14 @@ class Fabric:
         return (points - centre) @ np.asarray(R).T + centre
 
     def start_points(self):
-        """Control points (nyarn, ncp, 3) of the start state: ``start_X``, or
-        X, turned."""
+        """Control points (N, 3) of the start state: ``start_X``, or X,
+        turned."""
         return self.turn(self.X if self.start_X is None else self.start_X)
 
     def started_turned(self, R):
         """The same fabric (same rest) started turned by R about its centroid."""
         return replace(self, start=(np.asarray(R, float),
-                                    self.X.reshape(-1, 3).mean(axis=0)))
+                                    self.X.mean(axis=0)))
 
     def rotated(self, R, centre):
         """The same fabric turned rigidly by the rotation R about ``centre``."""

@@ -182,27 +182,23 @@ def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
     return sa, sb
 
 
-def min_yarn_distance(yarns, samples_per_segment=8):
+def min_yarn_distance(curves, samples_per_segment=8):
     """Smallest centreline distance between two different yarns.
 
-    yarns is a list of control-point arrays (n_f, 3); each spline is sampled
-    ``samples_per_segment`` times a segment, and the samples of every later
-    yarn are matched to a k-d tree of yarn f. Returns (distance, f, g).
+    ``curves`` are the yarns as open splines (``curves.Curves``), each
+    sampled ``samples_per_segment`` times a segment; the samples of every
+    later yarn are matched to a k-d tree of yarn f. Returns (distance, f, g).
     """
     from scipy.spatial import cKDTree          # on first use: 40 ms of import
 
-    pts = []
-    for P in yarns:
-        s = np.linspace(0, len(P) - 3, (len(P) - 3) * samples_per_segment + 1)
-        pts.append(bspline.curve_points(P, s))
+    sampled = curves.samples(samples_per_segment)
+    pts, start = sampled.points, sampled.start
     best = (np.inf, -1, -1)
-    for f in range(len(pts) - 1):
-        later = np.concatenate(pts[f + 1:])
-        owner = np.repeat(np.arange(f + 1, len(pts)), [len(p) for p in pts[f + 1:]])
-        d, _ = cKDTree(pts[f]).query(later, k=1)
+    for f in range(curves.nyarn - 1):
+        d, _ = cKDTree(pts[start[f]:start[f + 1]]).query(pts[start[f + 1]:], k=1)
         i = np.argmin(d)
         if d[i] < best[0]:
-            best = (d[i], f, owner[i])
+            best = (d[i], f, sampled.yarn[start[f + 1] + i])
     return best
 
 

@@ -347,7 +347,8 @@ def draw_history(path, fabric, weights, history, refine, coarsen, panels=4):
     positive = etas[etas > 0]
     norm = LogNorm(vmin=max(positive.min(), 1e-6 * positive.max()),
                    vmax=positive.max()) if positive.size else None
-    lines = io.centrelines(fabric.X, 3)
+    lines = io.centrelines(fabric.curves(fabric.X), 3)
+    lines = np.split(lines.points, lines.start[1:-1])
     for ax, i in zip(axes, pick):
         h = history[i]
         mesh = ax.pcolormesh(corners[..., 0], corners[..., 1],

@@ -91,7 +91,7 @@ class VolumeWeights:
     """
 
     def __init__(self, fabric, volume):
-        X = fabric.X.reshape(-1, 3)
+        X = fabric.X
         try:
             s1, s2, w3 = volume.embed(X)
         except ValueError as err:
@@ -137,7 +137,7 @@ class MixedSpace:
         used[weights.cols[emb][weights.vals[emb] != 0]] = True
         self.alpha = np.flatnonzero(used)                  # kept volume points
         na = even_counts(len(self.alpha), P)
-        cp = layout.yarn_ranges * layout.ncp_per_yarn
+        cp = layout.cp_ranges
         nf = np.array([full[cp[r]:cp[r + 1]].sum() for r in range(P)])
         self.counts = na + nf
         off = np.concatenate([[0], np.cumsum(self.counts)])
@@ -436,7 +436,7 @@ class MixedModel(EmbeddedModel):
         turned as the fabric starts (``start_state``) with ``turned``."""
         q = self.M.createVecRight()
         turn = self.fabric.turn if turned else (lambda p: p)
-        q.getArray()[:] = self.space.state(turn(self.fabric.X.reshape(-1, 3)),
+        q.getArray()[:] = self.space.state(turn(self.fabric.X),
                                            turn(self.space.volume.flat))
         return q
 
@@ -571,23 +571,25 @@ class MixedModel(EmbeddedModel):
 # -- regions -------------------------------------------------------------------
 def stitch_mask(fabric, regions):
     """Control points of the stitches in ``regions`` [(c0, c1, r0, r1), …]
-    (half-open stitch and course ranges): control point i of course f lies in
-    stitch min(max(i − 1, 0) // 8, nc − 1), the stitch its parameter
-    s = i − 1 falls in ((i − 1) mod n_f // 8 on a closed course)."""
-    s = np.arange(fabric.ncp) - 1
-    s = np.mod(s, fabric.ncp) if fabric.closed else np.maximum(s, 0)
-    stitch = np.minimum(s // SEGMENTS_PER_STITCH, stitches(fabric) - 1)
-    course = np.arange(fabric.nyarn)
-    mask = np.zeros((fabric.nyarn, fabric.ncp), bool)
+    (half-open stitch and course ranges): control point i of a yarn of n_f
+    lies in stitch min(max(i − 1, 0) // 8, its stitches − 1), the stitch its
+    parameter s = i − 1 falls in ((i − 1) mod n_f // 8 on a closed yarn), and
+    in the course it knits (``Fabric.course``)."""
+    f = fabric.yarn_of
+    ncp, closed = fabric.yarn_ncp[f], fabric.closed[f]
+    s = np.arange(fabric.npoints) - fabric.yarn_start[f] - 1
+    s = np.where(closed, np.mod(s, ncp), np.maximum(s, 0))
+    stitch = np.minimum(s // SEGMENTS_PER_STITCH, yarn_stitches(fabric)[f] - 1)
+    course = fabric.course
+    mask = np.zeros(fabric.npoints, bool)
     for c0, c1, r0, r1 in regions:
-        mask |= (((course >= r0) & (course < r1))[:, None]
-                 & ((stitch >= c0) & (stitch < c1))[None, :])
-    return mask.ravel()
+        mask |= (course >= r0) & (course < r1) & (stitch >= c0) & (stitch < c1)
+    return mask
 
 
-def stitches(fabric):
-    """Stitches a course (one for a yarn shorter than a stitch)."""
-    return max(fabric.nseg // SEGMENTS_PER_STITCH, 1)
+def yarn_stitches(fabric):
+    """Stitches (nyarn,) of each yarn (one for a yarn shorter than a stitch)."""
+    return np.maximum(fabric.yarn_nseg // SEGMENTS_PER_STITCH, 1)
 
 
 def parse_regions(text, where, nc, nr):
@@ -623,15 +625,15 @@ def region_options(opts):
 def regions_from_options(opts, fabric):
     """The full regions of -knit_full_region and -knit_full_regions FILE."""
     one, path = region_options(opts)
-    nc = stitches(fabric)
-    regions = parse_regions(one, "-knit_full_region", nc, fabric.nyarn)
+    nc, nr = int(yarn_stitches(fabric).max()), int(fabric.course.max()) + 1
+    regions = parse_regions(one, "-knit_full_region", nc, nr)
     if path:
         try:
             with open(path) as f:
                 text = f.read()
         except OSError as err:
             raise KnitError(f"-knit_full_regions {path}: {err.strerror}") from None
-        regions += parse_regions(text, f"-knit_full_regions {path}", nc, fabric.nyarn)
+        regions += parse_regions(text, f"-knit_full_regions {path}", nc, nr)
     return regions
 
 

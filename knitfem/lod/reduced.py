@@ -51,7 +51,7 @@ class Embedding:
     def __init__(self, comm, layout, fabric, volume):
         self.comm, self.volume = comm, volume
         with EV_EMBED:
-            X = fabric.X[layout.yarn_start:layout.yarn_end].reshape(-1, 3)
+            X = fabric.X[layout.cp_start:layout.cp_end]
             try:
                 self.params = volume.embed(X)
             except ValueError as err:
@@ -169,10 +169,10 @@ def embedding_from_options(opts, comm, fabric, layout=None):
         except (OSError, ValueError) as err:
             raise KnitError(f"-knit_volume {path}: {err}") from None
     else:
-        around = BoundingVolume.tube if fabric.closed else BoundingVolume.around
-        volume = around(fabric.X.reshape(-1, 3), *lod, margin=fabric.radius,
+        around = BoundingVolume.tube if fabric.closed.any() else BoundingVolume.around
+        volume = around(fabric.X, *lod, margin=fabric.radius,
                         frame=fabric.frame)
-    layout = layout or YarnLayout(comm, fabric.nyarn, fabric.ncp)
+    layout = layout or YarnLayout(comm, fabric.yarn_start)
     return Embedding(comm, layout, fabric, volume)
 
 
@@ -322,7 +322,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         _, allc = cons.build(self.fabric)
         vol = self.embedding.volume
         rows = np.zeros((allc.count, vol.size))
-        X = self.fabric.X.reshape(-1, 3)
+        X = self.fabric.X
         for r in range(allc.count):
             sl = slice(allc.indptr[r], allc.indptr[r + 1])
             cols, vals = vol.weights(*vol.embed(X[allc.indices[sl]]))

@@ -68,9 +68,11 @@ class ShellStretch:
         self.L2 = np.einsum("qi,qi->q", t, t)
         W = np.tile(el.weights, el.ne) * np.sqrt(self.L2)
         self.EA = full.material.EA
-        nseg, e = full.fabric.nseg, np.arange(el.ne)
-        self.win = np.repeat((e // nseg) * -(-nseg // window) + (e % nseg) // window,
-                             len(el.weights))
+        lay = full.layout
+        f, k = full.fabric.segments(lay.yarn_start, lay.yarn_end)
+        nwin = -(-full.fabric.yarn_nseg[lay.yarn_start:lay.yarn_end] // window)
+        first = np.concatenate([[0], np.cumsum(nwin)])[f - lay.yarn_start]
+        self.win = np.repeat(first + k // window, len(el.weights))
         nwin = self.win.max() + 1 if el.ne else 0
         self.L = np.bincount(self.win, W, minlength=nwin)            # L_w
         self.share = W / self.L[self.win]                            # W_q / L_w

@@ -19,21 +19,30 @@ __all__ = ["YarnLayout", "ElementPattern", "kron_identity", "create_aij",
 class YarnLayout:
     """Whole yarns per rank, in order; the rank's control points are contiguous.
 
-    Collective only in spirit: every rank computes the same split of
-    ``nyarn`` yarns of ``ncp_per_yarn`` control points over ``comm.size``.
+    Collective only in spirit: every rank computes the same split of the
+    yarns whose control points start at ``yarn_start`` (nyarn + 1 offsets)
+    over ``comm.size``: rank r's first yarn is the one whose first control
+    point lies nearest r · N / size (halves up), so that ranks hold about as
+    many control points each (yarns of one length: counts that differ by at
+    most one).
     """
 
-    def __init__(self, comm, nyarn, ncp_per_yarn):
-        self.comm, self.nyarn, self.ncp_per_yarn = comm, nyarn, ncp_per_yarn
-        counts = np.full(comm.size, nyarn // comm.size)
-        counts[: nyarn % comm.size] += 1
-        self.yarn_ranges = np.concatenate([[0], np.cumsum(counts)])
-        self.yarn_start = self.yarn_ranges[comm.rank]
-        self.yarn_end = self.yarn_ranges[comm.rank + 1]
-        self.ncp = nyarn * ncp_per_yarn
-        self.cp_start = self.yarn_start * ncp_per_yarn
-        self.cp_end = self.yarn_end * ncp_per_yarn
-        self.yarn_offset = np.arange(nyarn + 1) * ncp_per_yarn
+    def __init__(self, comm, yarn_start):
+        self.comm = comm
+        self.yarn_offset = np.asarray(yarn_start, dtype=np.int64)
+        self.nyarn = len(self.yarn_offset) - 1
+        self.ncp = int(self.yarn_offset[-1])
+        target = np.arange(comm.size + 1) * self.ncp / comm.size
+        near = np.searchsorted(self.yarn_offset, target)          # first at or above
+        below = np.maximum(near - 1, 0)
+        closer = target - self.yarn_offset[below] < self.yarn_offset[near] - target
+        self.yarn_ranges = np.where(closer, below, near)
+        self.yarn_ranges[[0, -1]] = 0, self.nyarn
+        self.yarn_start = int(self.yarn_ranges[comm.rank])
+        self.yarn_end = int(self.yarn_ranges[comm.rank + 1])
+        self.cp_ranges = self.yarn_offset[self.yarn_ranges]
+        self.cp_start = int(self.cp_ranges[comm.rank])
+        self.cp_end = int(self.cp_ranges[comm.rank + 1])
 
     @property
     def local_yarns(self):
@@ -42,11 +51,6 @@ class YarnLayout:
     @property
     def ncp_local(self):
         return self.cp_end - self.cp_start
-
-    def owner_rank(self, yarn):
-        """Rank owning each yarn in ``yarn``."""
-        return np.searchsorted(self.yarn_ranges, yarn, side="right") - 1
-
 
 def csr_rows(indptr):
     """Row index of every CSR entry (PETSc's integer type)."""

@@ -105,16 +105,18 @@ class FullModel:
                  stretch=True, yarn_contact=False):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
-        fewest = bspline.fewest_gauss_points(fabric.nseg, fabric.closed)
+        nseg, closed = fabric.yarn_nseg, fabric.closed
+        fewest = max((bspline.fewest_gauss_points(n, c) for n, c in zip(nseg, closed)),
+                     default=1)
         if nq < fewest:
             raise KnitError(f"-knit_quadrature {nq} leaves the mass matrix singular "
-                            f"(a yarn of {fabric.nseg} segment(s) needs at least "
+                            f"(a yarn of {int(nseg.min())} segment(s) needs at least "
                             f"{fewest} Gauss points a segment): use "
                             f"-knit_quadrature {fewest} or more")
-        self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
+        self.layout = lay = YarnLayout(comm, fabric.yarn_start)
         with EV_ASSEMBLY:
             self.conn = fabric.connectivity(lay.yarn_start, lay.yarn_end)
-            Xloc = fabric.X[lay.yarn_start:lay.yarn_end].reshape(-1, 3)
+            Xloc = fabric.X[lay.cp_start:lay.cp_end]
             self.elements = YarnElements(Xloc, self.conn - lay.cp_start,
                                          material.rho, material.EA if stretch else 0.0,
                                          material.EI, nq=nq,
@@ -167,7 +169,7 @@ class FullModel:
     def _state(self, X):
         x = self.M.createVecRight()
         lay = self.layout
-        x.getArray()[:] = X[lay.yarn_start:lay.yarn_end].ravel()
+        x.getArray()[:] = X[lay.cp_start:lay.cp_end].ravel()
         return x
 
     def yarn_points(self, x):
@@ -187,13 +189,12 @@ class FullModel:
 
     def gather_points(self, x):
         """All control points on rank 0 (None elsewhere), as open splines
-        (``Fabric.open_splines``: closed yarns repeat three at their end)."""
+        (``Fabric.curves``: closed yarns repeat three at their end)."""
         local = x.getArray(readonly=True)
         parts = self.comm.tompi4py().gather(local, root=0)
         if self.comm.rank:
             return None
-        f = self.fabric
-        return f.open_splines(np.concatenate(parts).reshape(f.nyarn, f.ncp, 3))
+        return self.fabric.curves(np.concatenate(parts))
 
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
@@ -402,23 +403,22 @@ class FullModel:
         return self.K
 
     def yarn_blocks(self, size, overlap):
-        """Subdomains of whole courses for an additive Schwarz method on
-        [A Cᵀ; C 0]: this rank's courses in runs of ``size``, each widened by
-        ``overlap`` courses either side (across ranks too). A block is
+        """Subdomains of whole yarns for an additive Schwarz method on
+        [A Cᵀ; C 0]: this rank's yarns in runs of ``size``, each widened by
+        ``overlap`` yarns either side (across ranks too). A block is
         (coordinates, constraint rows), global indices of A and C: every
-        coordinate of its courses and every constraint among them (a contact
-        of course k when k + 1 is in the block as well), so that its own
-        saddle point is solvable."""
-        lay, cons_asm = self.layout, self.constraints
-        ncp, nyarn = lay.ncp_per_yarn, lay.nyarn
-        row_owner = np.repeat(cons_asm.owner, 3)
-        row_reach = row_owner + np.repeat(cons_asm.kind == "contact", 3)
+        coordinate of its yarns and every constraint among them (one that
+        reads no yarn outside the block: a contact of course k when k + 1 is
+        in the block as well), so that its own saddle point is solvable."""
+        lay = self.layout
+        offset, nyarn = lay.yarn_offset, lay.nyarn
+        row_low, row_high = np.repeat(self.constraints.reach, 3, axis=0).T
         blocks = []
         for first in range(lay.yarn_start, lay.yarn_end, size):
             lo = max(first - overlap, 0)
             hi = min(first + size + overlap, nyarn)
-            coords = np.arange(3 * ncp * lo, 3 * ncp * hi)
-            rows = np.flatnonzero((row_owner >= lo) & (row_reach < hi))
+            coords = np.arange(3 * offset[lo], 3 * offset[hi])
+            rows = np.flatnonzero((row_low >= lo) & (row_high < hi))
             blocks.append((coords, rows))
         return blocks
 

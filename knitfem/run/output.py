@@ -272,7 +272,8 @@ class Checkpoint:
     x, v : all coordinates and velocities; t, step; stats : counters;
     fingerprint : dict; extra : dict of JSON values (rest-state measures,
     t origin, the integrator's ``state()``, whose numpy arrays come back as
-    lists); frames : [(title, P)] snapshots.
+    lists); frames : [(title, P)] snapshots, the yarns P (``Curves``) saved
+    as their control points (N, 3) and loaded as those.
     """
 
     def __init__(self, x, v, t, step, fingerprint, stats, extra=None, frames=()):
@@ -285,7 +286,7 @@ class Checkpoint:
             for name, data in (("x", self.x), ("v", self.v)):
                 f.create_dataset(name, data=data, fletcher32=True, chunks=True)
             for i, (title, P) in enumerate(self.frames):
-                d = f.create_dataset(f"frames/{i}", data=P, fletcher32=True,
+                d = f.create_dataset(f"frames/{i}", data=np.asarray(P), fletcher32=True,
                                      chunks=True)
                 d.attrs["title"] = title
             f.attrs.update(format=FORMAT, t=self.t, step=self.step,

@@ -39,14 +39,16 @@ VERSION = 1
 """Layout of relaxed.h5."""
 
 
-def yarn_lengths(X, closed=False, nq=8):
-    """Length ∫|X'| ds of every yarn (nyarn, ncp, 3), by nq-point Gauss."""
-    X = np.asarray(X, dtype=float)
-    nseg = bspline.segments(X.shape[1], closed)
+def yarn_lengths(fabric, P=None, nq=8):
+    """Length ∫|P'| ds (nyarn,) of every yarn of ``fabric`` with control
+    points P (N, 3; default its rest X), by nq-point Gauss a segment."""
+    P = fabric.X if P is None else np.asarray(P, dtype=float).reshape(-1, 3)
+    yarn = fabric.segments(0, fabric.nyarn)[0]
+    conn = fabric.connectivity(0, fabric.nyarn)
     uq, wq = bspline.gauss(nq)
-    cols = bspline.span(np.arange(nseg), X.shape[1], closed)        # (nseg, 4)
-    d = np.einsum("qa,fsad->fsqd", bspline.basis(uq, 1), X[:, cols])
-    return np.linalg.norm(d, axis=-1) @ wq @ np.ones(nseg)
+    d = np.einsum("qa,sad->sqd", bspline.basis(uq, 1), P[conn])
+    return np.bincount(yarn, np.linalg.norm(d, axis=-1) @ wq,
+                       minlength=fabric.nyarn)
 
 
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
@@ -54,9 +56,8 @@ def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     ``length`` a stitch (default: the template's), started from the template
     scaled by ``scale`` along the fabric's course, wale and thickness
     directions about its centroid; crossings held 2r apart."""
-    ell = loop_length(yarn_lengths(fabric.X, fabric.closed),
-                      np.full(fabric.nyarn, jersey.cols))
-    centre = fabric.X.reshape(-1, 3).mean(axis=0)
+    ell = loop_length(yarn_lengths(fabric), np.full(fabric.nyarn, jersey.cols))
+    centre = fabric.X.mean(axis=0)
     F = fabric.frame
     S = F @ np.diag(scale) @ F.T
     return replace(fabric, X=(fabric.X - centre) * ((length or ell) / ell) + centre,
@@ -74,19 +75,19 @@ def stress_free(fabric):
 
 
 def knit_measures(jersey, fabric, P):
-    """Textile measures of the knit at control points P (nyarn, ncp, 3):
+    """Textile measures of the knit at control points P (N, 3):
     loop length, course and wale spacings, Munden's constants and the curl
     of each edge (``knit.measure``)."""
-    lengths = yarn_lengths(P, fabric.closed)
-    ell = loop_length(lengths, np.full(fabric.nyarn, jersey.cols))
-    heads = np.stack([bspline.curve_points(P[f], jersey.heads(f),
-                                           closed=fabric.closed)
-                      for f in range(fabric.nyarn)])
+    P = np.asarray(P, dtype=float).reshape(-1, 3)
+    ell = loop_length(yarn_lengths(fabric, P), np.full(fabric.nyarn, jersey.cols))
+    yarn = np.repeat(np.arange(fabric.nyarn), jersey.cols)
+    cols, b = fabric.point_rows(yarn, np.tile(jersey.heads(0), fabric.nyarn))
+    heads = np.einsum("na,nai->ni", b, P[cols]).reshape(fabric.nyarn, jersey.cols, 3)
     cs, ws = spacings(heads)
     kc, kw, ks = munden(ell, cs, ws)
     rec = dict(loop_length_m=ell, course_spacing_m=cs, wale_spacing_m=ws,
                k_c=kc, k_w=kw, k_s=ks)
-    if not fabric.closed and fabric.nyarn > 2 and jersey.cols > 2:
+    if not fabric.closed.any() and fabric.nyarn > 2 and jersey.cols > 2:
         rec["curl"] = curl(heads, fabric.frame[:, 2], fabric.radius)
     return rec
 

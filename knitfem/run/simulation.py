@@ -51,14 +51,11 @@ EV_CHECKPOINT = PETSc.Log.Event("knitCheckpoint")
 
 def sag_below_supports(fabric, P, low):
     """How far the lowest point ``low`` hangs below the lowest held point
-    (m), for control points P; None when nothing is held."""
+    (m), for the yarns P (``Curves``); None when nothing is held."""
     yarns, s = fabric.fixed
     if not len(yarns):
         return None
-    k, u = bspline.locate(np.asarray(s, dtype=float), P.shape[1] - 3)
-    held = np.einsum("na,na->n", bspline.basis(u),
-                     P[np.asarray(yarns)[:, None], k[:, None] + np.arange(4), 1])
-    return float(held.min() - low[1])
+    return float(P.at(yarns, s)[:, 1].min() - low[1])
 
 
 class Simulation:
@@ -143,7 +140,7 @@ class Simulation:
         _, pts = self.geometry()
         self.gaps = None
         if self.comm.rank == 0:
-            self.initial_lowest = float(pts[..., 1].min())
+            self.initial_lowest = float(pts.points[:, 1].min())
             self.gaps = YarnGaps(pts, self.full.fabric.radius)
 
     def fingerprint(self):
@@ -210,12 +207,12 @@ class Simulation:
                     max_strain=max_strain, centroid=self.centroid(eps).tolist())
 
     def geometry(self):
-        """Rank 0: control points (nyarn, ncp, 3) and sampled centrelines."""
+        """Rank 0: the yarns (``Curves``) and their sampled centrelines."""
         P = self.system.gather_points(self.x)
         return (P, io.centrelines(P)) if P is not None else (None, None)
 
     def control_points(self):
-        """Rank 0: control points (nyarn, ncp, 3) (collective)."""
+        """Rank 0: the yarns (``Curves``) (collective)."""
         return self.system.gather_points(self.x)
 
     # -- output --------------------------------------------------------------
@@ -260,7 +257,7 @@ class Simulation:
                                               self.full.fabric.radius, keep, note)
             if self.bodies:                  # for ParaView, beside the yarns
                 io.write_bodies(self._path("bodies.vtu"), self.bodies,
-                                float(np.ptp(P.reshape(-1, 3), axis=0).max()))
+                                float(np.ptp(P.points, axis=0).max()))
         self.series.write(self.step_count, self.t, P)
         if self.animation:
             self.movie.append((self.t, P))
@@ -360,8 +357,9 @@ class Simulation:
         self.stats.update(ckpt.stats)
         self.frames = []
         if self.comm.rank == 0 and self.output is not None:   # drawn again
+            fabric = self.full.fabric
             for title, P in ckpt.frames:
-                self.draw_snapshot(title, P)
+                self.draw_snapshot(title, fabric.curves(fabric.X).moved(P))
         extra = ckpt.extra
         self.initial_lowest = extra.get("initial_lowest", self.initial_lowest)
         self.steps_taken = list(extra.get("steps_taken", []))
@@ -638,7 +636,7 @@ class Simulation:
         if self.energy:
             rec.update(self.energy_record())
         if self.comm.rank == 0:
-            flat = pts.reshape(-1, 3)
+            flat = pts.points
             low = flat[np.argmin(flat[:, 1])]
             if self.system.fabric.bodies:
                 centre = self.system.fabric.bodies[0]
@@ -651,8 +649,7 @@ class Simulation:
             rec.update(lowest_point=low.tolist(),
                        drop=float(self.initial_lowest - low[1]),
                        sag=sag_below_supports(self.system.fabric, P, low),
-                       tip=bspline.curve_points(P[0], np.array([P.shape[1] - 3.0]))[0]
-                       .tolist())
+                       tip=P.at([0], P.nseg[:1])[0].tolist())
         return self.comm.tompi4py().bcast(rec, root=0)
 
     def write_summary(self, rec, status, quiet=False):

@@ -13,6 +13,10 @@ P = (p_k + 4 p_{k+1} + p_{k+2})/6, so the value there is centred on p_{k+1}.
 
 A closed (periodic) curve has no end points: its n control points make n
 segments, segment k blending p_{(k+a) mod n}, and s is read modulo n.
+
+``segments``, ``span`` and ``locate`` take one curve's n and closedness, or
+arrays of them broadcast against k or s (points on yarns of their own
+lengths, some closed, some open, in one vectorised call).
 """
 
 import numpy as np
@@ -75,22 +79,24 @@ def fewest_gauss_points(nseg, closed=False):
 
 def segments(ncp, closed=False):
     """Segments of a curve of ncp control points: ncp − 3, or ncp if closed."""
-    return ncp if closed else ncp - 3
+    return ncp - 3 * (1 - np.asarray(closed, dtype=int))
 
 
 def span(k, ncp, closed=False):
     """Control points (..., 4) that segment k blends: k … k + 3, modulo ncp
     on a closed curve."""
     idx = np.asarray(k)[..., None] + np.arange(4)
-    return idx % ncp if closed else idx
+    if np.ndim(closed) == 0:
+        return idx % ncp if closed else idx
+    return np.where(np.asarray(closed)[..., None], idx % np.asarray(ncp)[..., None],
+                    idx)
 
 
 def locate(s, nseg, closed=False):
     """Split global parameters s into (segment k, local u): s ∈ [0, nseg]
     (clipped to the end segments), or s modulo nseg on a closed curve."""
     s = np.asarray(s, dtype=float)
-    if closed:
-        s = np.mod(s, nseg)
+    s = np.where(closed, np.mod(s, nseg), s)
     k = np.clip(np.floor(s).astype(int), 0, nseg - 1)
     return k, s - k
 
