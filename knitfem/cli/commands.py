@@ -134,9 +134,10 @@ def material_from_options(opts, scene=None):
 
 
 def model_options(opts):
-    """(model, Gauss points, kernels) from -knit_model, -knit_quadrature,
-    -knit_kernels; declares the options read only for some models, too
-    (-knit_lod, -knit_volume; -knit_full_region(s))."""
+    """(model, Gauss points, kernels, crossings) from -knit_model,
+    -knit_quadrature, -knit_kernels and (-knit_contacts, -knit_slide_margin);
+    declares the options read only for some models, too (-knit_lod,
+    -knit_volume; -knit_full_region(s))."""
     from knitfem.yarn.kernels import KINDS
     from knitfem.lod.mixed import region_options
     from knitfem.lod.reduced import sampling_options, stretch_options, volume_options
@@ -146,11 +147,21 @@ def model_options(opts):
     nq = opts.getInt("quadrature", 4, "Gauss points a yarn segment", 1)
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
+    contacts = opts.getChoice("contacts", "fixed", ("fixed", "sliding"),
+                              "persistent crossings: at fixed spline parameters, "
+                              "or sliding through the stitches without friction "
+                              "(full model)")
+    margin = opts.getInt("slide_margin", 2, "sliding crossings: segments a "
+                         "crossing may slide either way from its rest segment "
+                         "[segments, default 2]", 1)
+    if contacts == "sliding" and kind != "full":
+        raise KnitError(f"-knit_contacts sliding: the {kind} model keeps no "
+                        f"crossings of its own; use -knit_model full")
     volume_options(opts)
     sampling_options(opts)
     stretch_options(opts)
     region_options(opts)
-    return kind, nq, kernels
+    return kind, nq, kernels, (contacts, margin)
 
 
 def build_system(comm, opts, fabric, material):
@@ -159,12 +170,13 @@ def build_system(comm, opts, fabric, material):
     from knitfem.model.full import FullModel
     from knitfem.lod.reduced import embedding_from_options, reduced_from_options, stretch_options
 
-    kind, nq, kernels = model_options(opts)
+    kind, nq, kernels, (contacts, margin) = model_options(opts)
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     try:
         own = kind != "reduced" or stretch_options(opts, bool(fabric.bodies)) == "yarn"
-        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own)
+        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own,
+                         contacts=contacts, slide_margin=margin)
         if kind == "full":
             return full
         embedding = embedding_from_options(opts, comm, fabric, full.layout)

@@ -31,6 +31,7 @@ from solvers.aij import OwnAIJ
 from knitfem.contact import constraints as cons
 from knitfem.model.assembly import ElementPattern, YarnLayout, create_aij, kron_identity
 from knitfem.contact.colliders import Barrier
+from knitfem.contact import sliding
 from knitfem.contact.constraint_assembly import ConstraintAssembly
 from knitfem.yarn.kernels import yarn_kernels
 from knitfem.yarn.elements import YarnElements
@@ -89,13 +90,15 @@ class FullModel:
     Collective on ``comm``. ``nq`` Gauss points a segment; ``kernels`` one of
     ``kernels.KINDS`` ("compiled" or "numpy"); ``stretch`` False leaves the
     yarns' stretching energy out (for an embedded model that measures it its
-    own way, ``shell.ShellStretch``).
+    own way, ``shell.ShellStretch``); ``contacts`` "fixed" (crossings at fixed
+    spline parameters, ``constraints``) or "sliding" (``sliding``, windows of
+    ``slide_margin`` segments either side).
     """
 
     kind = "full"
 
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
-                 stretch=True):
+                 stretch=True, contacts="fixed", slide_margin=2):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
         self.layout = lay = YarnLayout(comm, fabric.nyarn, fabric.ncp)
@@ -117,8 +120,11 @@ class FullModel:
             self.m = create_aij(comm, (n, N), (n, N), m_csr)
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
-            self.constraints = cons_asm = ConstraintAssembly(
-                comm, lay, *cons.build(fabric))
+            crossings, holds = cons.build(fabric)
+            if contacts == "sliding":
+                crossings = sliding.crossings(fabric, slide_margin)
+            self.constraints = cons_asm = ConstraintAssembly(comm, lay, crossings,
+                                                             holds)
             self.C = cons_asm.C
             x = self.start_state()
             cons_asm.jacobian(x)                 # C valid from the start
@@ -256,7 +262,7 @@ class FullModel:
             tangent = ElementPattern([self.conn, cons_asm.element_cols()],
                                      lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts) = \
-                tangent.blocks3(diagonal=(1,))
+                tangent.blocks3(diagonal=(1,) if cons_asm.diagonal_curvature else ())
             n, N = 3 * lay.ncp_local, 3 * lay.ncp
             K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
             self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn),
@@ -299,7 +305,7 @@ class FullModel:
         values = self._hessian(x, xref, self.tangent_slot3, self.tangent_values)
         if mu is not None and weight:
             with EV_TANGENT:
-                self.constraints.add_curvature(mu, weight, values)
+                self.constraints.add_curvature(mu, weight, values, x)
         with EV_ASSEMBLY:
             self.K.assemble()
         return self.K
@@ -314,8 +320,8 @@ class FullModel:
         saddle point is solvable."""
         lay, cons_asm = self.layout, self.constraints
         ncp, nyarn = lay.ncp_per_yarn, lay.nyarn
-        row_owner = np.repeat(cons_asm.owner, 3)
-        row_reach = row_owner + np.repeat(cons_asm.kind == "contact", 3)
+        row_owner = np.repeat(cons_asm.owner, cons_asm.nrows)
+        row_reach = row_owner + np.repeat(cons_asm.kind == "contact", cons_asm.nrows)
         blocks = []
         for first in range(lay.yarn_start, lay.yarn_end, size):
             lo = max(first - overlap, 0)
@@ -324,6 +330,16 @@ class FullModel:
             rows = np.flatnonzero((row_owner >= lo) & (row_reach < hi))
             blocks.append((coords, rows))
         return blocks
+
+    def slide_report(self):
+        """``max_slide_m``, the largest arc length by which a sliding crossing
+        has moved along one of its yarns since rest (at the last evaluation
+        of the constraints), or {} for fixed crossings (collective)."""
+        if self.constraints.diagonal_curvature:
+            return {}
+        slides = self.constraints.slides()
+        return dict(max_slide_m=max_over_ranks(
+            self.comm, float(slides.max()) if slides.size else 0.0))
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""

@@ -579,7 +579,8 @@ class Simulation:
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
-                   ksp_iterations=self.stats["ksp"], **m)
+                   ksp_iterations=self.stats["ksp"], **m,
+                   **self.full.slide_report())
         if rec["adaptive"]:
             rec.update(rtol=control.rtol, atol=control.atol)
         if getattr(s, "sampling", None):
