@@ -82,3 +82,34 @@ def hanging_simulation(fabric, out, **options):
     model = FullModel(PETSc.COMM_SELF, fabric, Material())
     return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
                       scene="hanging", verbose=False, **options)
+
+
+def state(model, X):
+    """The local part of all control points X (nyarn, ncp, 3) as a Vec."""
+    x = model.rest_state()
+    lay = model.layout
+    x.getArray()[:] = X[lay.yarn_start:lay.yarn_end].ravel()
+    return x
+
+
+def central(f, x, dx, h=1.0):
+    """(f(x + h dx) − f(x − h dx)) / 2h for a Vec-valued f."""
+    xp, xm = x.duplicate(), x.duplicate()
+    xp.waxpy(h, dx, x)
+    xm.waxpy(-h, dx, x)
+    return (f(xp) - f(xm)) / (2 * h)
+
+
+def constraints_off_rest(m, shift, mu_all, weight=0.5):
+    """(g, K + w Σμ∇²g) of a full model at its start state moved by ``shift``
+    (all coordinates), with the multipliers ``mu_all`` (all rows); C(ε) is
+    evaluated too."""
+    x = m.start_state()
+    lo, hi = x.getOwnershipRange()
+    x.getArray()[:] += shift[lo:hi]
+    g, mu = m.C.createVecLeft(), m.C.createVecLeft()
+    a, b = mu.getOwnershipRange()
+    mu.getArray()[:] = mu_all[a:b]
+    m.constraint_residual(x, g)
+    m.constraint_jacobian(x)
+    return g, m.stiffness(x, mu, weight)

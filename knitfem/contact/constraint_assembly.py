@@ -132,7 +132,9 @@ class ConstraintAssembly:
             + np.arange(3)
         indices[self.hslot] = 3 * hcols[:, None, :] + np.arange(3)[None, :, None]
         n, N = 3 * layout.ncp_local, 3 * layout.ncp
-        self.own = OwnAIJ.from_csr(comm, ((k, K), (n, N)), indptr, indices, bsize=3)
+        # block size 3 where every constraint has three rows
+        self.own = OwnAIJ.from_csr(comm, ((k, K), (n, N)), indptr, indices,
+                                   bsize=3 if nr == 3 else None)
         self.cslot, self.hslot = self.own.place(self.cslot), self.own.place(self.hslot)
         self.values = self.own.values
         self.values[self.hslot] = holds.values[hi_ent][:, None, :]
@@ -218,6 +220,14 @@ class ConstraintAssembly:
             self.B.add(mu, weight, values)
         else:
             self.B.add(mu, weight, values, self._points(x)[self.ghost_r])
+
+    def at_window_edge(self, x):
+        """How many sliding crossings sit at an end of their window at the
+        state x (collective; 0 for fixed crossings)."""
+        if self.diagonal_curvature:
+            return 0
+        self.local.solve(self._points(x)[self.ghost_c])
+        return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
     def slides(self):
         """Arc lengths (n, 2) along both yarns by which this rank's sliding

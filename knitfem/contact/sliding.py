@@ -30,8 +30,10 @@ material moves through the crossing point.
 
 Weights live on a window of 4 + 2m control points a yarn (m the margin in
 segments either side of the rest segment), so that C(ε) keeps one sparsity
-pattern while s* moves up to m segments; a crossing that leaves its window
-is refused (``SlidError``), with the advice to widen the margin.
+pattern while s* moves up to m segments. Inside a step's Newton iterations
+s* is held in its window; a step that ends with a crossing at the end of
+its window is refused (``FullModel.begin_step``), with the advice to widen
+the margin.
 """
 
 from dataclasses import dataclass, fields
@@ -137,19 +139,35 @@ class SlidingCrossings:
         H[:, [0, 1], [0, 1]] += np.einsum("nd,njd->nj", r, rss)
         return H
 
+    def clamp(self, s):
+        """s held inside its window (the window's ends where it left)."""
+        rel = s - self.first
+        if self.closed:
+            rel = np.mod(rel + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
+        return self.first + np.clip(rel, 0.0, self.width - 3.0)
+
+    def at_edge(self):
+        """Crossings (indices) whose s lies on an end of its window."""
+        s = self.clamp(self.s)
+        rel = s - self.first
+        if self.closed:
+            rel = np.mod(rel + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
+        return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0)).any(axis=1))
+
     def solve(self, P):
         """s* (n, 2): the closest approach r·r_s = 0 near the last s, by
-        Newton's method; stored as the new state and returned."""
+        Newton's method held inside the windows (a state far off, as a
+        Newton iterate of a step may be, puts s* at a window's end:
+        ``at_edge``); stored as the new state and returned."""
         s = self.s.copy()
         for _ in range(NEWTON_STEPS):
             r, _, rs, _, rss = self._geometry(P, s)
             F = np.einsum("nd,njd->nj", r, rs)
             ds = -np.linalg.solve(self._second(r, rs, rss), F[..., None])[..., 0]
-            ds = np.clip(ds, -MAX_STEP, MAX_STEP)
-            s += ds
+            new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
+            ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
                 break
-        self.weights(s, 0)                       # still in its window
         self.s = s
         return s
 

@@ -27,6 +27,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 from solvers.aij import OwnAIJ
+from solvers.integrators import SimulationError
 
 from knitfem.contact import constraints as cons
 from knitfem.model.assembly import ElementPattern, YarnLayout, create_aij, kron_identity
@@ -186,9 +187,15 @@ class FullModel:
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
         """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``)."""
+        reference points are taken there (lagged, ``colliders``). Sliding
+        crossings must lie inside their windows there."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
+        out = self.constraints.at_window_edge(x)
+        if out:
+            raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
+                                  f"their window: widen it with -knit_slide_margin",
+                                  curable=False)
 
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
