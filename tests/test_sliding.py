@@ -37,7 +37,7 @@ def residual(model, x):
 
 def closest_approach_residual(crossings, P):
     """max |r·t_a|, |r·t_b| over the crossings at their stored s, in m²."""
-    r, _, rs, _, _ = crossings._geometry(P, crossings.s)
+    r, _, rs, _, _ = crossings._geometry(P, crossings.s_star)
     return np.abs(np.einsum("nd,njd->nj", r, rs)).max(initial=0.0)
 
 
@@ -160,7 +160,7 @@ def test_yarn_pulled_lengthwise_slides_through_a_crossing(kind):
     g = sys_.C.createVecLeft()
     sys_.constraint_residual(x, g)
     assert np.abs(g.getArray()).max() < 1e-15
-    s = sys_.constraints.local.s[0]
+    s = sys_.constraints.local.s_star[0]
     assert abs((s[0] - sys_.constraints.local.s0[0, 0]) + v * n * dt / 1e-3) < 1e-9
     assert abs(sys_.slide_report()["max_slide_m"] - v * n * dt) < 1e-9
     sys_.destroy()

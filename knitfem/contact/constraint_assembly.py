@@ -221,12 +221,15 @@ class ConstraintAssembly:
         else:
             self.B.add(mu, weight, values, self._points(x)[self.ghost_r])
 
-    def at_window_edge(self, x):
-        """How many sliding crossings sit at an end of their window at the
-        state x (collective; 0 for fixed crossings)."""
+    def commit(self, x):
+        """An accepted state x: sliding crossings start their closest
+        approach from there; returns how many sit at an end of their window
+        (collective; 0 for fixed crossings)."""
         if self.diagonal_curvature:
             return 0
-        self.local.solve(self._points(x)[self.ghost_c])
+        P = self._points(x)
+        self.local.commit(P[self.ghost_c])
+        self.reaching.commit(P[self.ghost_r])
         return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
     def slides(self):

@@ -46,9 +46,10 @@ from knitfem.yarn import bspline
 
 __all__ = ["SlidingCrossings", "BlockCurvature", "SlidError", "crossings"]
 
-NEWTON_STEPS = 12          # closest approach: quadratic, 2–3 steps from a warm start
+NEWTON_STEPS = 30          # closest approach: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
+EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
 class SlidError(KnitError):
@@ -62,9 +63,10 @@ class SlidingCrossings:
     owner (n,) the yarn of P_a; cols (n, 2W) global control points of the two
     windows (W = 4 + 2 margin, yarn a's then yarn b's); first (n, 2) the
     first segment of each window; nseg and closed the yarns' segments and
-    closure; delta (n,) the rest separation; s (n, 2) the current sliding
-    parameters (state, updated at every evaluation), s0 (n, 2) their rest
-    values; X (n, 2W, 3) the rest control points of the windows (arc lengths).
+    closure; delta (n,) the rest separation; s (n, 2) the committed sliding
+    parameters (state: where every evaluation's closest approach starts
+    from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
+    of the windows (arc lengths). ``s_star`` holds the last evaluation's s*.
     """
 
     owner: np.ndarray
@@ -79,6 +81,9 @@ class SlidingCrossings:
 
     rows = 1                      # scalar rows a crossing
     kind = "sliding"
+
+    def __post_init__(self):
+        self.s_star = self.s.copy()
 
     @property
     def count(self):
@@ -144,32 +149,43 @@ class SlidingCrossings:
         rel = s - self.first
         if self.closed:
             rel = np.mod(rel + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
-        return self.first + np.clip(rel, 0.0, self.width - 3.0)
+        return self.first + np.clip(rel, 0.0, self.width - 3.0 - EDGE)
 
     def at_edge(self):
-        """Crossings (indices) whose s lies on an end of its window."""
-        s = self.clamp(self.s)
+        """Crossings (indices) whose last s* lies on an end of its window."""
+        s = self.clamp(self.s_star)
         rel = s - self.first
         if self.closed:
             rel = np.mod(rel + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
-        return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0)).any(axis=1))
+        return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0 - EDGE))
+                              .any(axis=1))
 
     def solve(self, P):
-        """s* (n, 2): the closest approach r·r_s = 0 near the last s, by
-        Newton's method held inside the windows (a state far off, as a
-        Newton iterate of a step may be, puts s* at a window's end:
-        ``at_edge``); stored as the new state and returned."""
+        """s* (n, 2): the closest approach r·r_s = 0 reached from the
+        committed s (``commit``), so that s*(ε) is one function of ε during
+        a step whatever the states evaluated before. Newton's method on the
+        distance, its Hessian's eigenvalues kept positive (every step goes
+        down, to a minimum), steps of at most ``MAX_STEP``, held inside the
+        windows (a state far off, as a Newton iterate may be, puts s* at a
+        window's end: ``at_edge``). Stored as ``s_star`` and returned."""
         s = self.s.copy()
         for _ in range(NEWTON_STEPS):
             r, _, rs, _, rss = self._geometry(P, s)
             F = np.einsum("nd,njd->nj", r, rs)
-            ds = -np.linalg.solve(self._second(r, rs, rss), F[..., None])[..., 0]
+            lam, V = np.linalg.eigh(self._second(r, rs, rss))
+            lam = np.maximum(np.abs(lam), 1e-3 * np.abs(lam).max(axis=1, keepdims=True))
+            ds = -np.einsum("nij,nj,nkj,nk->ni", V, 1 / lam, V, F)
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
             ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
                 break
-        self.s = s
+        self.s_star = s
         return s
+
+    def commit(self, P):
+        """Take the closest approach at the points P as the new start s of
+        the next evaluations (an accepted state)."""
+        self.s = self.solve(P).copy()
 
     # -- constraint, Jacobian, Hessian -------------------------------------------
     def values(self, P):
@@ -197,9 +213,9 @@ class SlidingCrossings:
 
     # -- how far the crossings slid ------------------------------------------------
     def slide_lengths(self, nq=8):
-        """Arc length (n, 2) along each rest yarn from s0 to the current s."""
+        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
         x, wq = bspline.gauss(nq)
-        ds = self.s - self.s0
+        ds = self.s_star - self.s0
         if self.closed:                          # the short way round
             ds = np.mod(ds + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
         speed = np.zeros(self.s.shape)
@@ -253,7 +269,8 @@ def crossings(fabric, margin=2):
     X = fabric.X.reshape(-1, 3)[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
                          nseg, closed)
-    c.s0 = c.solve(X).copy()
+    c.commit(X)
+    c.s0 = c.s.copy()
     r = c._geometry(X, c.s0)[0]
     c.delta = np.linalg.norm(r, axis=1)
     return c

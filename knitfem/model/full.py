@@ -187,11 +187,12 @@ class FullModel:
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
         """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``). Sliding
-        crossings must lie inside their windows there."""
+        reference points are taken there (lagged, ``colliders``); sliding
+        crossings start their closest approach from there, and must lie
+        inside their windows."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
-        out = self.constraints.at_window_edge(x)
+        out = self.constraints.commit(x)
         if out:
             raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
                                   f"their window: widen it with -knit_slide_margin",
