@@ -49,6 +49,7 @@ __all__ = ["SlidingCrossings", "BlockCurvature", "SlidError", "crossings"]
 NEWTON_STEPS = 30          # closest approach: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
+CONFORMAL = 1e-3           # f_ss's eigenvalue ratio below which yarns wrap
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -161,6 +162,15 @@ class SlidingCrossings:
             rel = np.mod(rel + 0.5 * self.nseg, self.nseg) - 0.5 * self.nseg
         return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0 - EDGE))
                               .any(axis=1))
+
+    def conformal(self, P):
+        """Crossings (indices) whose yarns wrap around each other at the
+        points P: the closest approach is hardly a minimum any more (f_ss's
+        smallest eigenvalue below ``CONFORMAL`` times its largest), so s*
+        is about to jump and a point cannot stand for the contact."""
+        r, _, rs, _, rss = self._geometry(P, self.solve(P))
+        lam = np.linalg.eigvalsh(self._second(r, rs, rss))
+        return np.flatnonzero(lam[:, 0] < CONFORMAL * lam[:, 1])
 
     def solve(self, P):
         """s* (n, 2): the closest approach r·r_s = 0 reached from the

@@ -192,11 +192,16 @@ class FullModel:
         inside their windows."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
-        out = self.constraints.commit(x)
+        out, wrap = self.constraints.commit(x)
         if out:
             raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
                                   f"their window: widen it with -knit_slide_margin",
                                   curable=False)
+        if wrap:
+            raise SimulationError(f"at {wrap} sliding crossing(s) the yarns wrap "
+                                  f"around each other (their closest approach is no "
+                                  f"longer a strict minimum): a point cannot hold "
+                                  f"them; use -knit_contacts fixed", curable=False)
 
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
@@ -339,12 +344,13 @@ class FullModel:
             blocks.append((coords, rows))
         return blocks
 
-    def slide_report(self):
+    def slide_report(self, x):
         """``max_slide_m``, the largest arc length by which a sliding crossing
-        has moved along one of its yarns since rest (at the last evaluation
-        of the constraints), or {} for fixed crossings (collective)."""
+        has moved along one of its yarns from rest to the (accepted) state x,
+        or {} for fixed crossings (collective)."""
         if self.constraints.diagonal_curvature:
             return {}
+        self.constraints.commit(x)
         slides = self.constraints.slides()
         return dict(max_slide_m=max_over_ranks(
             self.comm, float(slides.max()) if slides.size else 0.0))

@@ -580,7 +580,7 @@ class Simulation:
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
                    ksp_iterations=self.stats["ksp"], **m,
-                   **self.full.slide_report())
+                   **self.full.slide_report(self.eps))
         if rec["adaptive"]:
             rec.update(rtol=control.rtol, atol=control.atol)
         if getattr(s, "sampling", None):
