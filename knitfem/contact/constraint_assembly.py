@@ -222,17 +222,15 @@ class ConstraintAssembly:
             self.B.add(mu, weight, values, self._points(x)[self.ghost_r])
 
     def commit(self, x):
-        """An accepted state x: sliding crossings start their closest
-        approach from there; returns how many sit at an end of their window
-        and how many wrap (``SlidingCrossings.conformal``), collective; none
-        for fixed crossings."""
+        """An accepted state x: sliding crossings start the search for their
+        point from there; returns how many sit at an end of their window
+        (collective; 0 for fixed crossings)."""
         if self.diagonal_curvature:
-            return 0, 0
+            return 0
         P = self._points(x)
         self.local.commit(P[self.ghost_c])
         self.reaching.commit(P[self.ghost_r])
-        mine = len(self.local.at_edge()), len(self.local.conformal(P[self.ghost_c]))
-        return tuple(self.comm.tompi4py().allreduce(n) for n in mine)
+        return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
     def slides(self):
         """Arc lengths (n, 2) along both yarns by which this rank's sliding

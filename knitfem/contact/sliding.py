@@ -1,32 +1,46 @@
 """Sliding crossings: two yarns interlocked at a point that slides along both.
 
-A persistent crossing of yarn a with yarn b holds one scalar constraint at
-the closest approach of the two centrelines. With the separation
+A persistent crossing of yarn a with yarn b holds one scalar constraint at a
+point that moves along both yarns. With the separation and the reference
+tangents
 
-    r(ε, s) = P_a(s_a) − P_b(s_b),   f(ε, s) = |r|² / (2δ),
+    r(ε, s) = P_a(s_a) − P_b(s_b),   T_a = P_a'(σ_a),   T_b = P_b'(σ_b),
 
-the sliding parameters s = (s_a, s_b) are eliminated: at every evaluation
-s*(ε) solves the closest-approach conditions f_s = 0,
+(σ the pattern's crossing parameters: T is linear in ε and turns with the
+yarns) the sliding parameters s = (s_a, s_b) are eliminated: at every
+evaluation s*(ε) solves the crossing conditions
 
-    r·t_a = 0,   r·t_b = 0,   t_a = ∂r/∂s_a = P_a',   t_b = ∂r/∂s_b = −P_b',
+    c(ε, s) = (r·T_a, r·T_b) = 0,   A = c_s = (t_i·T_j),   t = r_s,
 
-by a few vectorised Newton iterations warm-started from the last s* (kept
-as state: the crossing follows a continuous local minimum of the distance,
-so the interlock cannot jump to another pair of points). The crossing holds
+(r along the yarns' common normal T_a × T_b) by a few vectorised Newton
+iterations from the s of the last accepted state (state: s* is one
+continuous function of ε within a step, so the interlock cannot jump). The
+crossing holds
 
-    g(ε) = f(ε, s*(ε)) − δ/2 = (|r|² − δ²) / (2δ),
+    g(ε) = G(ε, s*(ε)) = (|r|² − δ²) / (2δ),
 
-δ the rest separation. By the envelope theorem (f_s = 0 at s*) the Jacobian
-is ∂g/∂p_k = w_k r / δ, w_k the weights of r at s*: the constraint force is
-along the common normal, so yarn slides through the crossing without
-friction. Its exact Hessian, with ∂s*/∂ε = −f_ss⁻¹ f_sε, is
+δ the rest separation. At rest the crossing is the closest approach (r ⟂
+t_a, t_b with t = T): A is the Gram matrix of two tangents crossing at 64°
+on the jersey, well conditioned, with no curvature term. (The closest
+approach itself, r·t_a = r·t_b = 0 at the current tangents, has
+A = r_sᵀ r_s + r·r_ss: on the jersey's interlocks the loops wrap around
+each other so that its smallest eigenvalue is 7 % of the largest at rest
+and vanishes under a pull, where s* jumps.)
 
-    ∇²g = (1/δ) (w wᵀ ⊗ I₃) − f_εs f_ss⁻¹ f_sε,
-    f_ss = (r_sᵀ r_s + diag(r·r_ss)) / δ,   ∂f_s_i/∂p_k = (w_k r_si + w_si,k r) / δ,
+g depends on ε only (a holonomic constraint: its force does no work on any
+motion that keeps it, so sliding dissipates nothing), and with the
+multipliers η = −A⁻ᵀ G_s of the Lagrangian L = G + ηᵀc (L_s = 0 at s*)
 
-full 3 × 3 blocks (``BlockCurvature``). g is a distance, so every rigid
-motion keeps it; s carries no mass: the yarn's inertia is in ε, its
-material moves through the crossing point.
+    ∇g = L_ε = G_ε + ηᵀ c_ε,
+    ∇²g = L_εε + L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S,   S = ∂s*/∂ε = −A⁻¹ c_ε,
+
+with G_ε,k = w_k r/δ, G_s = r·t/δ, c_ε,jk = w_k T_j + χ_jk r (w, χ the
+weights of r and T), full 3 × 3 blocks (``BlockCurvature``). g, c and A
+are dot products of vectors that turn with the fabric and do not move
+under a translation, so every rigid motion keeps g. s carries no mass:
+the yarn's inertia is in ε, its material moves through the crossing point.
+At the two straight yarns' crossing r·t = 0, so η = 0 and the force is
+w_k r/δ, along the normal.
 
 Weights live on a window of 4 + 2m control points a yarn (m the margin in
 segments either side of the rest segment), so that C(ε) keeps one sparsity
@@ -46,10 +60,9 @@ from knitfem.yarn import bspline
 
 __all__ = ["SlidingCrossings", "BlockCurvature", "SlidError", "crossings"]
 
-NEWTON_STEPS = 30          # closest approach: quadratic, 2–3 steps near s
+NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
-CONFORMAL = 1e-3           # f_ss's eigenvalue ratio below which yarns wrap
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -65,9 +78,10 @@ class SlidingCrossings:
     windows (W = 4 + 2 margin, yarn a's then yarn b's); first (n, 2) the
     first segment of each window; nseg and closed the yarns' segments and
     closure; delta (n,) the rest separation; s (n, 2) the committed sliding
-    parameters (state: where every evaluation's closest approach starts
+    parameters (state: where every evaluation's search for s* starts
     from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
-    of the windows (arc lengths). ``s_star`` holds the last evaluation's s*.
+    of the windows (arc lengths); sT (n, 2) the parameters σ of the
+    reference tangents. ``s_star`` holds the last evaluation's s*.
     """
 
     owner: np.ndarray
@@ -77,6 +91,7 @@ class SlidingCrossings:
     s: np.ndarray
     s0: np.ndarray
     X: np.ndarray
+    sT: np.ndarray
     nseg: int
     closed: bool
 
@@ -140,12 +155,18 @@ class SlidingCrossings:
         rss = sign * np.einsum("njk,njkd->njd", b2, Pw)
         return r, w, rs, ws, rss
 
-    @staticmethod
-    def _second(r, rs, rss):
-        """δ f_ss = r_sᵀ r_s + diag(r·r_ss), (n, 2, 2)."""
-        H = np.einsum("nid,njd->nij", rs, rs)
-        H[:, [0, 1], [0, 1]] += np.einsum("nd,njd->nj", r, rss)
-        return H
+    def _chord_weights(self):
+        """Weights χ (n, 2, 2W) of the reference tangents T_a = P_a'(σ_a),
+        T_b = P_b'(σ_b) at the fixed parameters σ (``sT``)."""
+        W, b1 = self.width, self.weights(self.sT, (1,))[0]
+        chi = np.zeros((self.count, 2, 2 * W))
+        chi[:, 0, :W], chi[:, 1, W:] = b1[:, 0], b1[:, 1]
+        return chi
+
+    def _chords(self, P):
+        """The reference tangents T (n, 2, 3): directions along the two
+        yarns at the crossing that depend on ε only."""
+        return np.einsum("njk,nkd->njd", self._chord_weights(), P)
 
     def clamp(self, s):
         """s held inside its window (the window's ends where it left)."""
@@ -163,34 +184,21 @@ class SlidingCrossings:
         return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0 - EDGE))
                               .any(axis=1))
 
-    def conformal(self, P):
-        """Crossings (indices) whose yarns wrap around each other at the
-        points P: the closest approach is hardly a minimum any more (f_ss's
-        smallest eigenvalue below ``CONFORMAL`` times its largest), so s*
-        is about to jump and a point cannot stand for the contact."""
-        r, _, rs, _, rss = self._geometry(P, self.solve(P))
-        lam = np.linalg.eigvalsh(self._second(r, rs, rss))
-        return np.flatnonzero(lam[:, 0] < CONFORMAL * lam[:, 1])
-
     def solve(self, P):
-        """s* (n, 2): the closest approach r·r_s = 0 reached from the
-        committed s (``commit``), so that s*(ε) is one function of ε during
-        a step whatever the states evaluated before. Newton's method on the
-        distance, its Hessian's eigenvalues kept positive (every step goes
-        down, to a minimum), steps of at most ``MAX_STEP``, held inside the
-        windows (a state far off, as a Newton iterate may be, puts s* at a
-        window's end: ``at_edge``). Stored as ``s_star`` and returned; the
-        points P of the last solve are kept, so that g, C and ∇²g at one
-        state solve once."""
+        """s* (n, 2): the crossing c = (r·T_a, r·T_b) = 0 reached from the
+        committed s (``commit``) by Newton's method, c_s = (t_i·T_j), steps
+        of at most ``MAX_STEP``, held inside the windows (a state far off,
+        as a Newton iterate may be, puts s* at a window's end: ``at_edge``).
+        Stored as ``s_star`` and returned; the points P of the last solve
+        are kept, so that g, C and ∇²g at one state solve once."""
         if self.solved_at is not None and np.array_equal(P, self.solved_at):
             return self.s_star
+        T = self._chords(P)
         s = self.s.copy()
         for _ in range(NEWTON_STEPS):
-            r, _, rs, _, rss = self._geometry(P, s)
-            F = np.einsum("nd,njd->nj", r, rs)
-            lam, V = np.linalg.eigh(self._second(r, rs, rss))
-            lam = np.maximum(np.abs(lam), 1e-3 * np.abs(lam).max(axis=1, keepdims=True))
-            ds = -np.einsum("nij,nj,nkj,nk->ni", V, 1 / lam, V, F)
+            r, _, rs = self._geometry(P, s)[:3]
+            c = np.einsum("nd,njd->nj", r, T)
+            ds = -np.linalg.solve(np.einsum("nid,njd->nji", rs, T), c[..., None])[..., 0]
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
             ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
@@ -199,8 +207,8 @@ class SlidingCrossings:
         return s
 
     def commit(self, P):
-        """Take the closest approach at the points P as the new start s of
-        the next evaluations (an accepted state)."""
+        """Take the crossing at the points P as the new start s of the next
+        evaluations (an accepted state)."""
         self.s = self.solve(P).copy()
         self.solved_at = None
 
@@ -211,24 +219,51 @@ class SlidingCrossings:
         d = self.delta
         return ((np.einsum("nd,nd->n", r, r) - d * d) / (2 * d))[:, None]
 
+    def _terms(self, P):
+        """What ∇g and ∇²g are made of at s* (module docstring): r, w, r_s,
+        its weights, r_ss, T, χ, A = c_s (n, 2, 2), c_ε (n, 2, 3K) and the
+        multipliers η = −A⁻ᵀ G_s (n, 2)."""
+        r, w, rs, ws, rss = self._geometry(P, self.solve(P))
+        T, chi = self._chords(P), self._chord_weights()
+        n, K = w.shape
+        A = np.einsum("nid,njd->nji", rs, T)
+        c_eps = (w[:, None, :, None] * T[:, :, None, :]
+                 + chi[..., None] * r[:, None, None, :]).reshape(n, 2, 3 * K)
+        G_s = np.einsum("nd,nid->ni", r, rs) / self.delta[:, None]
+        eta = -np.linalg.solve(A.transpose(0, 2, 1), G_s[..., None])[..., 0]
+        return r, w, rs, ws, rss, T, chi, A, c_eps, eta
+
     def gradients(self, P):
-        """∂g/∂p_k (n, 1, 2W, 3) = w_k r / δ at s*."""
-        r, w = self._geometry(P, self.solve(P))[:2]
-        return (w[:, :, None] * r[:, None, :] / self.delta[:, None, None])[:, None]
+        """∂g/∂p (n, 1, 2W, 3) = G_ε + ηᵀ c_ε at s*."""
+        r, w, _, _, _, _, _, _, c_eps, eta = self._terms(P)
+        n, K = w.shape
+        G_eps = w[:, :, None] * r[:, None, :] / self.delta[:, None, None]
+        return (G_eps.reshape(n, 3 * K) + np.einsum("nj,nja->na", eta, c_eps)
+                ).reshape(n, 1, K, 3)
 
     def hessians(self, P):
-        """∇²g (n, 6W, 6W) at s*, entry (3k + p, 3l + q) (module docstring)."""
-        r, w, rs, ws, rss = self._geometry(P, self.solve(P))
+        """∇²g (n, 6W, 6W) at s*, entry (3k + p, 3l + q):
+        L_εε + L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S, S = ∂s*/∂ε = −A⁻¹ c_ε
+        (module docstring)."""
+        r, w, rs, ws, rss, T, chi, A, c_eps, eta = self._terms(P)
         n, K = w.shape
-        d = self.delta[:, None, None]
-        inv = np.linalg.inv(self._second(r, rs, rss) / d)
-        F = (w[:, :, None, None] * rs.transpose(0, 2, 1)[:, None]
-             + ws.transpose(0, 2, 1)[:, :, None, :] * r[:, None, :, None]) / d[..., None]
-        F = F.reshape(n, 3 * K, 2)
-        H = -(F @ inv) @ F.transpose(0, 2, 1)
-        H.reshape(n, K, 3, K, 3)[...] += \
-            (np.einsum("nk,nl->nkl", w, w) / d)[:, :, None, :, None] * np.eye(3)[:, None]
-        return H
+        d = self.delta
+        ww = np.einsum("nk,nl->nkl", w, w) / d[:, None, None]
+        wc = np.einsum("nj,nk,njl->nkl", eta, w, chi)
+        M = ww + wc + wc.transpose(0, 2, 1)
+        H = np.zeros((n, 3 * K, 3 * K))
+        H.reshape(n, K, 3, K, 3)[...] += M[:, :, None, :, None] * np.eye(3)[:, None]
+        L_es = ((ws.transpose(0, 2, 1)[:, :, None, :] * r[:, None, :, None]
+                 + w[:, :, None, None] * rs.transpose(0, 2, 1)[:, None])
+                / d[:, None, None, None]
+                + np.einsum("nj,nik,njp->nkpi", eta, ws, T)
+                + np.einsum("nj,njk,nip->nkpi", eta, chi, rs)).reshape(n, 3 * K, 2)
+        L_ss = np.einsum("nid,njd->nij", rs, rs) / d[:, None, None]
+        L_ss[:, [0, 1], [0, 1]] += (np.einsum("nd,nid->ni", r, rss) / d[:, None]
+                                    + np.einsum("nj,nid,njd->ni", eta, rss, T))
+        S = -np.linalg.solve(A, c_eps)
+        LS = L_es @ S
+        return H + LS + LS.transpose(0, 2, 1) + S.transpose(0, 2, 1) @ L_ss @ S
 
     # -- how far the crossings slid ------------------------------------------------
     def slide_lengths(self, nq=8):
@@ -268,9 +303,9 @@ class BlockCurvature:
 
 
 def crossings(fabric, margin=2):
-    """Sliding crossings of a ``Fabric``'s contacts, each at the closest
-    approach near its pattern parameters at rest, with windows of margin
-    segments either side."""
+    """Sliding crossings of a ``Fabric``'s contacts, each starting at its
+    pattern parameters (the closest approach at rest), with windows of
+    margin segments either side."""
     ya, sa, yb, sb = fabric.contacts
     ncp, nseg, closed = fabric.ncp, fabric.nseg, fabric.closed
     W = 4 + 2 * margin
@@ -288,7 +323,7 @@ def crossings(fabric, margin=2):
     cols = (yarn[..., None] * ncp + span).reshape(len(s0), 2 * W)
     X = fabric.X.reshape(-1, 3)[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
-                         nseg, closed)
+                         s0, nseg, closed)
     c.commit(X)
     c.s0 = c.s.copy()
     r = c._geometry(X, c.s0)[0]

@@ -188,20 +188,15 @@ class FullModel:
     def begin_step(self, x):
         """A step starts from the state x: friction's normal forces and
         reference points are taken there (lagged, ``colliders``); sliding
-        crossings start their closest approach from there, and must lie
+        crossings start the search for their point from there, and must lie
         inside their windows."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
-        out, wrap = self.constraints.commit(x)
+        out = self.constraints.commit(x)
         if out:
             raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
                                   f"their window: widen it with -knit_slide_margin",
                                   curable=False)
-        if wrap:
-            raise SimulationError(f"at {wrap} sliding crossing(s) the yarns wrap "
-                                  f"around each other (their closest approach is no "
-                                  f"longer a strict minimum): a point cannot hold "
-                                  f"them; use -knit_contacts fixed", curable=False)
 
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
