@@ -72,14 +72,15 @@ def energies(model, x, v):
     return kinetic + model.elastic_energy(x) - model.Qg.dot(x), kinetic
 
 
-def hanging_simulation(fabric, out, **options):
-    """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model into
-    ``out``, quiet, with the ``Simulation`` options given (output_every,
-    checkpoint_every, snapshots, …)."""
+def hanging_simulation(fabric, out, contacts="fixed", **options):
+    """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model
+    (with ``contacts`` crossings) into ``out``, quiet, with the
+    ``Simulation`` options given (output_every, checkpoint_every,
+    snapshots, …)."""
     from knitfem.run.simulation import Simulation
     from solvers.integrators import BackwardEuler
 
-    model = FullModel(PETSc.COMM_SELF, fabric, Material())
+    model = FullModel(PETSc.COMM_SELF, fabric, Material(), contacts=contacts)
     return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
                       scene="hanging", verbose=False, **options)
 

@@ -232,6 +232,24 @@ class ConstraintAssembly:
         self.reaching.commit(P[self.ghost_r])
         return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
+    def sliding_parameters(self):
+        """Every sliding crossing's committed s (ncontacts, 2) on every rank,
+        for a checkpoint (collective); None for fixed crossings."""
+        if self.diagonal_curvature:
+            return None
+        parts = self.comm.tompi4py().allgather((self.mine, self.local.s))
+        s = np.zeros((sum(len(m) for m, _ in parts), 2))
+        for mine, part in parts:
+            s[mine] = part
+        return s
+
+    def set_sliding_parameters(self, s):
+        """Commit the sliding parameters s (``sliding_parameters``)."""
+        s = np.asarray(s, dtype=float)
+        for part, which in ((self.local, self.mine), (self.reaching, self.touching)):
+            part.s, part.s_star = s[which], s[which]
+            part.solved_at = None
+
     def slides(self):
         """Arc lengths (n, 2) along both yarns by which this rank's sliding
         crossings have moved from rest (none for fixed crossings)."""

@@ -283,7 +283,8 @@ class Simulation:
                      for k, a in state.items()}
         extra = dict(initial_lowest=self.initial_lowest, integrator=state,
                      steps_taken=self.steps_taken, energy=self.energy,
-                     restarted_from=self.restarted_from)
+                     restarted_from=self.restarted_from,
+                     sliding=self.full.constraints.sliding_parameters())
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
                                  extra, self.frames) if self.comm.rank == 0 else None
@@ -329,6 +330,8 @@ class Simulation:
         lo, hi = self.x.getOwnershipRange()
         self.x.getArray()[:], self.v.getArray()[:] = ckpt.x[lo:hi], ckpt.v[lo:hi]
         self.t, self.step_count = ckpt.t, ckpt.step
+        if ckpt.extra.get("sliding") is not None:     # where crossings had slid
+            self.full.constraints.set_sliding_parameters(ckpt.extra["sliding"])
         self.stats.update(ckpt.stats)
         self.frames = []
         if self.comm.rank == 0 and self.output is not None:   # drawn again
