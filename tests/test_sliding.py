@@ -8,8 +8,8 @@ import pytest
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from helpers import (COMM, central, constraints_off_rest, gather, hanging_simulation,
-                     jersey, run, state)
+from helpers import (COMM, central, constraints_off_rest, gather, jersey, run,
+                     state)
 from knitfem.cli.scenes import rotation
 from knitfem.contact import sliding
 from knitfem.knit.fabric import Fabric
@@ -197,24 +197,3 @@ def test_parallel_equals_serial():
     par.destroy()
     ser.destroy()
 
-
-def test_restart_continues_from_the_slid_crossings(tmp_path):
-    """A checkpoint keeps where the crossings had slid: a restart equals the
-    uninterrupted run."""
-    fab = jersey(3, 2, hold="top")
-
-    def simulation(out):
-        return hanging_simulation(fab, out, contacts="sliding", output_every=5,
-                                  checkpoint_every=10)
-
-    whole = simulation(tmp_path / "a")
-    whole.run(0.02)
-    first = simulation(tmp_path / "b")
-    first.run(0.01)
-    second = simulation(tmp_path / "c")
-    second.restart(str(tmp_path / "b" / "checkpoint.h5"))
-    slid = second.full.constraints.local
-    assert np.abs(slid.s - slid.s0).max() > 1e-3      # restored, not from rest
-    second.run(0.02)
-    assert np.allclose(second.x.getArray(), whole.x.getArray(), rtol=0, atol=1e-12)
-    assert whole.summary()["max_slide_m"] > 0
