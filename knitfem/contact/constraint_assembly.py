@@ -162,6 +162,7 @@ class ConstraintAssembly:
         self.reaching = contacts.select(self.touching)   # into its tangent rows
         self.nonlinear = contacts.count > 0               # C depends on ε
         self.B = None          # curvature_operator in the owning model's tangent
+        self.reanchored = 0    # sliding crossings' reference tangents moved
 
     def _points(self, x):
         """Control points read by this rank's rows, from the state x (Vec)."""
@@ -228,26 +229,30 @@ class ConstraintAssembly:
         if self.diagonal_curvature:
             return 0
         P = self._points(x)
-        self.local.commit(P[self.ghost_c])
+        self.reanchored += self.local.commit(P[self.ghost_c])
         self.reaching.commit(P[self.ghost_r])
         return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
     def sliding_parameters(self):
-        """Every sliding crossing's committed s (ncontacts, 2) on every rank,
-        for a checkpoint (collective); None for fixed crossings."""
+        """Every sliding crossing's committed s, reference parameters σ and
+        reference tangents' weights χ, (ncontacts, 4 + 4W) on every rank, for
+        a checkpoint (collective); None for fixed crossings."""
         if self.diagonal_curvature:
             return None
-        parts = self.comm.tompi4py().allgather((self.mine, self.local.s))
-        s = np.zeros((sum(len(m) for m, _ in parts), 2))
+        loc = self.local
+        parts = self.comm.tompi4py().allgather((self.mine, np.concatenate(
+            [loc.s, loc.sT, loc.chi.reshape(loc.count, -1)], axis=1)))
+        s = np.zeros((sum(len(m) for m, _ in parts), 4 + 4 * loc.width))
         for mine, part in parts:
             s[mine] = part
         return s
 
     def set_sliding_parameters(self, s):
-        """Commit the sliding parameters s (``sliding_parameters``)."""
+        """Commit the sliding parameters (``sliding_parameters``)."""
         s = np.asarray(s, dtype=float)
         for part, which in ((self.local, self.mine), (self.reaching, self.touching)):
-            part.s, part.s_star = s[which], s[which]
+            part.s, part.s_star, part.sT = s[which, :2], s[which, :2], s[which, 2:4]
+            part.chi = s[which, 4:].reshape(len(which), 2, -1)
             part.solved_at = None
 
     def slides(self):

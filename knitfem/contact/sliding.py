@@ -6,8 +6,8 @@ tangents
 
     r(ε, s) = P_a(s_a) − P_b(s_b),   T_a = P_a'(σ_a),   T_b = P_b'(σ_b),
 
-(σ the pattern's crossing parameters: T is linear in ε and turns with the
-yarns) the sliding parameters s = (s_a, s_b) are eliminated: at every
+(σ the pattern's crossing parameters at the start: T is linear in ε and
+turns with the yarns) the sliding parameters s = (s_a, s_b) are eliminated: at every
 evaluation s*(ε) solves the crossing conditions
 
     c(ε, s) = (r·T_a, r·T_b) = 0,   A = c_s = (t_i·T_j),   t = r_s,
@@ -47,7 +47,12 @@ segments either side of the rest segment), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
 its window is refused (``FullModel.begin_step``), with the advice to widen
-the margin.
+the margin. The reference tangents follow a crossing that slides along a
+loop: at an accepted state where s* is more than half a segment from where
+they were taken, they are taken again there, T_j = t_j − β_j r with
+β_j = r·t_j / r·r, so that r·T = 0 still holds at that state: s* and g do
+not move, only g's gradient tilts by O(η) (``commit``; the summary counts
+these re-anchorings).
 """
 
 from dataclasses import dataclass, fields
@@ -63,6 +68,7 @@ __all__ = ["SlidingCrossings", "BlockCurvature", "SlidError", "crossings"]
 NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
+REANCHOR = 0.5            # slide [segments] after which the reference tangents move
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -89,8 +95,9 @@ class SlidingCrossings:
     closure; delta (n,) the rest separation; s (n, 2) the committed sliding
     parameters (state: where every evaluation's search for s* starts
     from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
-    of the windows (arc lengths); sT (n, 2) the parameters σ of the
-    reference tangents. ``s_star`` holds the last evaluation's s*.
+    of the windows (arc lengths); sT (n, 2) the parameters σ where the
+    reference tangents were taken, chi (n, 2, 2W) their weights. ``s_star``
+    holds the last evaluation's s*.
     """
 
     owner: np.ndarray
@@ -101,6 +108,7 @@ class SlidingCrossings:
     s0: np.ndarray
     X: np.ndarray
     sT: np.ndarray
+    chi: np.ndarray
     nseg: int
     closed: bool
 
@@ -165,17 +173,22 @@ class SlidingCrossings:
         return r, w, rs, ws, rss
 
     def _chord_weights(self):
-        """Weights χ (n, 2, 2W) of the reference tangents T_a = P_a'(σ_a),
-        T_b = P_b'(σ_b) at the fixed parameters σ (``sT``)."""
-        W, b1 = self.width, self.weights(self.sT, (1,))[0]
-        chi = np.zeros((self.count, 2, 2 * W))
-        chi[:, 0, :W], chi[:, 1, W:] = b1[:, 0], b1[:, 1]
-        return chi
+        """Weights χ (n, 2, 2W) of the reference tangents T = Σ_k χ_k p_k."""
+        return self.chi
 
     def _chords(self, P):
         """The reference tangents T (n, 2, 3): directions along the two
         yarns at the crossing that depend on ε only."""
-        return np.einsum("njk,nkd->njd", self._chord_weights(), P)
+        return np.einsum("njk,nkd->njd", self.chi, P)
+
+    def anchor(self, P, which):
+        """Reference tangents of the crossings ``which`` at their s:
+        T_j = t_j − β_j r, β_j = r·t_j / r·r at the points P, so that r·T = 0
+        there and s* at P stays s."""
+        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s)[:4])
+        beta = np.einsum("nd,njd->nj", r, rs) / np.einsum("nd,nd->n", r, r)[:, None]
+        self.chi[which] = ws - beta[..., None] * w[:, None, :]
+        self.sT[which] = self.s[which]
 
     def clamp(self, s):
         """s held inside its window (the window's ends where it left)."""
@@ -216,10 +229,18 @@ class SlidingCrossings:
         return s
 
     def commit(self, P):
-        """Take the crossing at the points P as the new start s of the next
-        evaluations (an accepted state)."""
+        """Take the crossing at the points P (an accepted state) as the new
+        start s of the next evaluations; a crossing that has slid more than
+        ``REANCHOR`` segments from its reference parameters σ takes its
+        reference tangents at s (``anchor``): on a loop the tangents turn as
+        the crossing slides, and A would lose rank. Returns how many were
+        re-anchored."""
         self.s = self.solve(P).copy()
+        far = np.flatnonzero(np.abs(self.s - self.sT).max(axis=1) > REANCHOR)
+        if far.size:
+            self.anchor(P, far)
         self.solved_at = None
+        return len(far)
 
     # -- constraint, Jacobian, Hessian -------------------------------------------
     def values(self, P):
@@ -332,9 +353,8 @@ def crossings(fabric, margin=2):
     cols = (yarn[..., None] * ncp + span).reshape(len(s0), 2 * W)
     X = fabric.X.reshape(-1, 3)[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
-                         s0, nseg, closed)
-    c.commit(X)
-    c.s0 = c.s.copy()
+                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed)
+    c.anchor(X, np.arange(len(s0)))
     r = c._geometry(X, c.s0)[0]
     c.delta = np.linalg.norm(r, axis=1)
     return c

@@ -342,13 +342,17 @@ class FullModel:
     def slide_report(self, x):
         """``max_slide_m``, the largest arc length by which a sliding crossing
         has moved along one of its yarns from rest to the (accepted) state x,
-        or {} for fixed crossings (collective)."""
+        and ``slide_reanchored``, how often a crossing's reference tangents
+        moved (``sliding.SlidingCrossings.commit``); {} for fixed crossings
+        (collective)."""
         if self.constraints.diagonal_curvature:
             return {}
         self.constraints.commit(x)
         slides = self.constraints.slides()
         return dict(max_slide_m=max_over_ranks(
-            self.comm, float(slides.max()) if slides.size else 0.0))
+            self.comm, float(slides.max()) if slides.size else 0.0),
+            slide_reanchored=self.comm.tompi4py().allreduce(
+                self.constraints.reanchored))
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""
