@@ -62,7 +62,8 @@ def test_crossing_conditions_hold_after_every_evaluation(model):
     asm = model.constraints
     for seed in (2, 3):
         x = state(model, perturbed(model, seed, 2e-5))
-        for evaluate in (lambda: residual(model, x), lambda: model.constraint_jacobian(x),
+        for evaluate in (lambda: residual(model, x),
+                         lambda: model.constraint_jacobian(x),
                          lambda: model.stiffness(x, model.C.createVecLeft(), 1.0)):
             evaluate()
             P = asm._points(x)

@@ -99,7 +99,8 @@ class ConstraintAssembly:
         # this rank's contacts and holds, and their first local scalar row
         self.mine = np.flatnonzero((cpos >= lo) & (cpos < hi))
         self.mine_h = np.flatnonzero((hpos >= lo) & (hpos < hi))
-        crow, hrow = first[cpos[self.mine]] - first[lo], first[hpos[self.mine_h]] - first[lo]
+        crow = first[cpos[self.mine]] - first[lo]
+        hrow = first[hpos[self.mine_h]] - first[lo]
         k, K = int(first[hi] - first[lo]), int(first[-1])
         length = np.zeros(k, dtype=np.int64)
         length[crow[:, None] + np.arange(nr)] = 3 * kc
