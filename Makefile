@@ -58,7 +58,7 @@ test-serial:
 	timeout 900 $(PYTEST) tests
 
 test-parallel:
-	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py \
+	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py tests/test_sliding.py \
 	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py \
 	  tests/test_yarn_contact.py tests/test_lengths.py
 	# the saddle tests count factorisation events: a process of their own

@@ -130,13 +130,45 @@ def energies(model, x, v):
     return kinetic + model.elastic_energy(x) - model.Qg.dot(x), kinetic
 
 
-def hanging_simulation(fabric, out, **options):
-    """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model into
-    ``out``, quiet, with the ``Simulation`` options given (output_every,
-    checkpoint_every, snapshots, …)."""
+def hanging_simulation(fabric, out, contacts="fixed", **options):
+    """A backward-Euler (1e-3 s) hanging run of ``fabric``'s full model
+    (with ``contacts`` crossings) into ``out``, quiet, with the
+    ``Simulation`` options given (output_every, checkpoint_every,
+    snapshots, …)."""
     from knitfem.run.simulation import Simulation
     from solvers.integrators import BackwardEuler
 
-    model = FullModel(PETSc.COMM_SELF, fabric, Material())
+    model = FullModel(PETSc.COMM_SELF, fabric, Material(), contacts=contacts)
     return Simulation(model, BackwardEuler(model, 1e-3), out=str(out),
                       scene="hanging", verbose=False, **options)
+
+
+def state(model, X):
+    """The local part of all control points X (N, 3) as a Vec."""
+    x = model.rest_state()
+    lay = model.layout
+    x.getArray()[:] = np.asarray(X).reshape(-1, 3)[lay.cp_start:lay.cp_end].ravel()
+    return x
+
+
+def central(f, x, dx, h=1.0):
+    """(f(x + h dx) − f(x − h dx)) / 2h for a Vec-valued f."""
+    xp, xm = x.duplicate(), x.duplicate()
+    xp.waxpy(h, dx, x)
+    xm.waxpy(-h, dx, x)
+    return (f(xp) - f(xm)) / (2 * h)
+
+
+def constraints_off_rest(m, shift, mu_all, weight=0.5):
+    """(g, K + w Σμ∇²g) of a full model at its start state moved by ``shift``
+    (all coordinates), with the multipliers ``mu_all`` (all rows); C(ε) is
+    evaluated too."""
+    x = m.start_state()
+    lo, hi = x.getOwnershipRange()
+    x.getArray()[:] += shift[lo:hi]
+    g, mu = m.C.createVecLeft(), m.C.createVecLeft()
+    a, b = mu.getOwnershipRange()
+    mu.getArray()[:] = mu_all[a:b]
+    m.constraint_residual(x, g)
+    m.constraint_jacobian(x)
+    return g, m.stiffness(x, mu, weight)

@@ -261,6 +261,23 @@ def test_a_tube_where_it_cannot_be_is_a_usage_error(tmp_path, args, said):
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and said in p.stderr
 
 
+def test_sliding_crossings_need_the_full_model(tmp_path):
+    p = knitfem("run", "-knit_model", "reduced", "-knit_contacts", "sliding",
+                "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "-knit_model full" in p.stderr
+
+
+def test_sliding_crossings_report_how_far_they_slid(tmp_path):
+    p = knitfem("run", "-knit_scene", "pulled", "-knit_rows", "3", "-knit_cols", "3",
+                "-knit_t_end", "0.002", "-knit_contacts", "sliding",
+                "-o", str(tmp_path / "s"))
+    assert p.returncode == 0, p.stderr
+    with open(tmp_path / "s" / "summary.json") as f:
+        rec = json.load(f)
+    assert rec["max_slide_m"] > 0 and rec["max_constraint_violation"] < 1e-9
+
+
 def test_symplectic_step_above_the_stable_step_is_a_usage_error(tmp_path):
     p = knitfem("run", "-knit_integrator", "symplectic", "-knit_dt", "1e-3",
                 "-o", str(tmp_path))

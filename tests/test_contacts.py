@@ -5,7 +5,7 @@ model tests run serial and under mpirun (COMM_WORLD)."""
 import numpy as np
 import pytest
 
-from helpers import COMM, gather, jersey
+from helpers import COMM, central, gather, jersey, state
 from knitfem.contact import constraints as cons
 from knitfem.model.full import FullModel, Material
 from knitfem.cli.scenes import rotation
@@ -18,14 +18,6 @@ def model():
     m = FullModel(COMM, jersey(4, 3, hold="top"), Material())
     yield m
     m.destroy()
-
-
-def state(model, X):
-    """The local part of all control points X (N, 3) as a Vec."""
-    x = model.rest_state()
-    lay = model.layout
-    x.getArray()[:] = X[lay.cp_start:lay.cp_end].ravel()
-    return x
 
 
 def residual(model, x):
@@ -67,14 +59,6 @@ def random_state(model, seed, amplitude=2e-4):
     rng = np.random.default_rng(seed)
     X = model.fabric.X + amplitude * rng.standard_normal(model.fabric.X.shape)
     return state(model, X)
-
-
-def central(f, x, dx, h=1.0):
-    """(f(x + h dx) − f(x − h dx)) / 2h for a Vec-valued f."""
-    xp, xm = x.duplicate(), x.duplicate()
-    xp.waxpy(h, dx, x)
-    xm.waxpy(-h, dx, x)
-    return (f(xp) - f(xm)) / (2 * h)
 
 
 def test_jacobian_is_the_derivative_of_g(model):

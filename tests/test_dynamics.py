@@ -144,11 +144,15 @@ def test_symplectic_energy_drift_bounded():
     assert drift[-10:].max() <= 1.5 * drift[:-10].max()
 
 
-def test_restart_equals_uninterrupted(tmp_path):
+@pytest.mark.parametrize("contacts", ["fixed", "sliding"])
+def test_restart_equals_uninterrupted(tmp_path, contacts):
+    """A restart continues exactly (sliding crossings from where the
+    checkpoint had them, not from rest)."""
     fab = jersey(3, 2, hold="top")
 
     def simulation(out):
-        return hanging_simulation(fab, out, output_every=5, checkpoint_every=10)
+        return hanging_simulation(fab, out, contacts=contacts, output_every=5,
+                                  checkpoint_every=10)
 
     whole = simulation(tmp_path / "a")
     whole.run(0.02)
@@ -157,6 +161,9 @@ def test_restart_equals_uninterrupted(tmp_path):
     second = simulation(tmp_path / "c")
     second.restart(str(tmp_path / "b" / "checkpoint.h5"))
     assert second.step_count == 10
+    if contacts == "sliding":
+        slid = second.full.constraints.local
+        assert np.abs(slid.s - slid.s0).max() > 1e-3
     second.run(0.02)
     assert np.abs(whole.x.getArray() - fab.X.ravel()).max() > 1e-7
     assert np.allclose(second.x.getArray(), whole.x.getArray(), rtol=0, atol=1e-12)

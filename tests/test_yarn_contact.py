@@ -212,9 +212,9 @@ def test_option_turns_it_off():
     opts = PETSc.Options()
     opts.setValue("-knit_yarn_contact", "off")
     try:
-        assert model_options(KnitOptions())[3] is False
+        assert model_options(KnitOptions()).yarn_contact is False
         opts.setValue("-knit_yarn_contact", "on")
-        assert model_options(KnitOptions())[3] is True
+        assert model_options(KnitOptions()).yarn_contact is True
     finally:
         opts.delValue("-knit_yarn_contact")
-    assert model_options(KnitOptions())[3] is False          # off by default
+    assert model_options(KnitOptions()).yarn_contact is False          # off by default

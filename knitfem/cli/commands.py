@@ -2,6 +2,7 @@
 
 import json
 import os
+from typing import NamedTuple
 
 import numpy as np
 from petsc4py import PETSc
@@ -259,11 +260,22 @@ def yarn_contact_option(opts, default="off"):
                           "run: off)") == "on"
 
 
+class ModelChoice(NamedTuple):
+    """What -knit_model and its companions ask for (``model_options``)."""
+
+    kind: str
+    quadrature: int
+    kernels: str
+    yarn_contact: bool
+    contacts: str
+    slide_margin: int
+
+
 def model_options(opts):
-    """(model, Gauss points, kernels, yarn contact) from -knit_model,
-    -knit_quadrature, -knit_kernels, -knit_yarn_contact; declares the options
-    read only for some models, too (-knit_lod, -knit_volume;
-    -knit_full_region(s))."""
+    """The model's choices (``ModelChoice``) from -knit_model,
+    -knit_quadrature, -knit_kernels, -knit_yarn_contact and -knit_contacts,
+    -knit_slide_margin; declares the options read only for some models, too
+    (-knit_lod, -knit_volume; -knit_full_region(s))."""
     from knitfem.yarn.kernels import KINDS
     from knitfem.lod.mixed import region_options
     from knitfem.lod.reduced import sampling_options, stretch_options, volume_options
@@ -276,11 +288,21 @@ def model_options(opts):
                      "it exactly)", 2)
     kernels = opts.getChoice("kernels", "compiled", KINDS, "yarn element kernels: "
                              "compiled loops or the numpy reference")
+    contacts = opts.getChoice("contacts", "fixed", ("fixed", "sliding"),
+                              "persistent crossings: at fixed spline parameters, "
+                              "or sliding through the stitches without friction "
+                              "(full model)")
+    margin = opts.getInt("slide_margin", 2, "sliding crossings: segments a "
+                         "crossing may slide either way from its rest segment "
+                         "[segments, default 2]", 1)
+    if contacts == "sliding" and kind != "full":
+        raise KnitError(f"-knit_contacts sliding: the {kind} model keeps no "
+                        f"crossings of its own; use -knit_model full")
     volume_options(opts)
     sampling_options(opts)
     stretch_options(opts)
     region_options(opts)
-    return kind, nq, kernels, yarn_contact
+    return ModelChoice(kind, nq, kernels, yarn_contact, contacts, margin)
 
 
 def build_system(comm, opts, fabric, material):
@@ -290,15 +312,18 @@ def build_system(comm, opts, fabric, material):
     from knitfem.lod.reduced import embedding_from_options, reduced_from_options, stretch_options
     from knitfem.run.relax import stress_free
 
-    kind, nq, kernels, yarn_contact = model_options(opts)
+    choice = model_options(opts)
+    kind = choice.kind
     stage = PETSc.Log.Stage("Model set-up")
     stage.push()
     if kind != "full":                   # the embedding holds the stitches
         fabric = stress_free(fabric)
     try:
         own = kind != "reduced" or stretch_options(opts, bool(fabric.bodies)) == "yarn"
-        full = FullModel(comm, fabric, material, nq=nq, kernels=kernels, stretch=own,
-                         yarn_contact=yarn_contact and kind == "full")
+        full = FullModel(comm, fabric, material, nq=choice.quadrature,
+                         kernels=choice.kernels, stretch=own,
+                         yarn_contact=choice.yarn_contact and kind == "full",
+                         contacts=choice.contacts, slide_margin=choice.slide_margin)
         if kind == "full":
             return full
         embedding = embedding_from_options(opts, comm, fabric, full.layout)

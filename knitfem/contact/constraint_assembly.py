@@ -1,14 +1,17 @@
 """The full model's constraints in PETSc: g(ε), its Jacobian C(ε) and the
 curvature Σ_i μ_i ∇²g_i, on whole yarns a rank.
 
-Rows. The vector constraints (contacts of ``constraints.Contacts``, holds of
-``constraints.Holds``) are ordered by the yarn that owns them, contacts of a
-yarn before its holds, whatever the number of ranks; each gives three scalar
-rows. A rank owns the rows of its yarns.
+Rows. The vector constraints (contacts of ``constraints.Contacts`` or
+``sliding.SlidingCrossings``, holds of ``constraints.Holds``) are ordered
+by the yarn that owns them, contacts of a yarn before its holds, whatever
+the number of ranks. A contact gives the rows of its kind (``rows``: three
+for a fixed crossing, one for a sliding one), a hold three. A rank owns the
+rows of its yarns.
 
-C(ε) keeps one sparsity pattern for the run: a contact row couples the 8
-control points of its two yarn points in all three components (24 entries),
-a hold row 4 points in its own component. Its values are written in place,
+C(ε) keeps one sparsity pattern for the run: a contact row couples the
+control points of its two yarn points in all three components (8 points
+for a fixed crossing, two windows for a sliding one), a hold row 4 points
+in its own component. Its values are written in place,
 into the array C holds (``solvers.aij.OwnAIJ``).
 
 Ghosts. A contact owned by course k reads the control points of course
@@ -16,10 +19,12 @@ k + 1, which may live on the next rank; the curvature term of a contact
 lands in the rows of both its yarns and reads its multipliers μ, which live
 on the rank of course k. Two PETSc scatters, set up once, bring both.
 
-The curvature is linear in μ with constant coefficients (g is quadratic),
-so its values in the tangent are S (Σ_j μ_cj h_cj) for the constant
-Hessians h and a constant 0/1 scatter S built once from the slots of the
-tangent's pattern (``Curvature``).
+For fixed crossings the curvature is linear in μ with constant
+coefficients (g is quadratic), so its values in the tangent are
+S (Σ_j μ_cj h_cj) for the constant Hessians h and a constant 0/1 scatter S
+built once from the slots of the tangent's pattern (``Curvature``); a
+sliding crossing's Hessian depends on ε and goes through the same kind of
+scatter, with full 3 × 3 blocks (``sliding.BlockCurvature``).
 """
 
 import numpy as np
@@ -27,6 +32,8 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from solvers.aij import OwnAIJ
+
+from knitfem.contact.sliding import BlockCurvature
 
 __all__ = ["ConstraintAssembly", "Curvature"]
 
@@ -75,7 +82,7 @@ class ConstraintAssembly:
 
     def __init__(self, comm, layout, contacts, holds):
         self.comm, self.layout = comm, layout
-        nct = contacts.count
+        nct, nr, kc = contacts.count, contacts.rows, contacts.cols.shape[1]
         owner = np.concatenate([contacts.owner, holds.owner])
         order = np.argsort(owner, kind="stable")
         position = np.empty(len(owner), dtype=np.int64)
@@ -88,29 +95,41 @@ class ConstraintAssembly:
         self.reach = np.concatenate([
             np.searchsorted(layout.yarn_offset, ends, side="right") - 1,
             np.repeat(holds.owner[:, None], 2, axis=1)]).reshape(-1, 2)[order]
+        # scalar rows of each vector constraint, and the first of each
+        self.nrows = np.where(self.kind == "contact", nr, 3)
+        first = np.concatenate([[0], np.cumsum(self.nrows)])
         lo, hi = np.searchsorted(owner[order], [layout.yarn_start, layout.yarn_end])
         self.start, self.nlocal = int(lo), int(hi - lo)
         cpos, hpos = position[:nct], position[nct:]
         # this rank's contacts and holds, and their first local scalar row
         self.mine = np.flatnonzero((cpos >= lo) & (cpos < hi))
         self.mine_h = np.flatnonzero((hpos >= lo) & (hpos < hi))
-        crow, hrow = 3 * (cpos[self.mine] - lo), 3 * (hpos[self.mine_h] - lo)
-        length = np.zeros(3 * self.nlocal, dtype=np.int64)
-        length[crow[:, None] + np.arange(3)] = 24
+        crow = first[cpos[self.mine]] - first[lo]
+        hrow = first[hpos[self.mine_h]] - first[lo]
+        k, K = int(first[hi] - first[lo]), int(first[-1])
+        length = np.zeros(k, dtype=np.int64)
+        length[crow[:, None] + np.arange(nr)] = 3 * kc
         length[hrow[:, None] + np.arange(3)] = 4
         indptr = np.concatenate([[0], np.cumsum(length)]).astype(PETSc.IntType)
-        # control points read: the local contacts' 8 and the holds' 4
+        # control points read: the local contacts', the holds' 4 and those of
+        # the contacts whose curvature reaches this rank's rows
+        cp0, cp1 = layout.cp_start, layout.cp_end
+        touch = (contacts.cols >= cp0) & (contacts.cols < cp1)
+        self.touching = np.flatnonzero(touch.any(axis=1))
         hi_ent = holds.indptr[self.mine_h][:, None] + np.arange(4)
         hcols = holds.indices[hi_ent].reshape(-1, 4)
-        need, inv = np.unique(np.concatenate([contacts.cols[self.mine].ravel(),
-                                              hcols.ravel()]), return_inverse=True)
-        self.ghost_c = inv[:8 * len(self.mine)].reshape(-1, 8)
-        self.ghost_h = inv[8 * len(self.mine):].reshape(-1, 4)
-        # positions of the values: contact row 3v + j holds (k, d) at 3k + d
+        parts = [contacts.cols[self.mine].ravel(), hcols.ravel(),
+                 contacts.cols[self.touching].ravel()]
+        need, inv = np.unique(np.concatenate(parts), return_inverse=True)
+        cut = np.cumsum([len(q) for q in parts])
+        self.ghost_c = inv[:cut[0]].reshape(-1, kc)
+        self.ghost_h = inv[cut[0]:cut[1]].reshape(-1, 4)
+        self.ghost_r = inv[cut[1]:].reshape(-1, kc)
+        # positions of the values: contact row v + j holds (k, d) at 3k + d
         self.cslot = (indptr[crow][:, None, None, None]
-                      + 24 * np.arange(3)[None, :, None, None]
-                      + 3 * np.arange(8)[None, None, :, None]
-                      + np.arange(3)[None, None, None, :])          # (n, 3, 8, 3)
+                      + 3 * kc * np.arange(nr)[None, :, None, None]
+                      + 3 * np.arange(kc)[None, None, :, None]
+                      + np.arange(3)[None, None, None, :])          # (n, nr, kc, 3)
         self.hslot = (indptr[hrow][:, None, None]
                       + 4 * np.arange(3)[None, :, None]
                       + np.arange(4)[None, None, :])                # (n, 3, 4)
@@ -119,8 +138,9 @@ class ConstraintAssembly:
             + np.arange(3)
         indices[self.hslot] = 3 * hcols[:, None, :] + np.arange(3)[None, :, None]
         n, N = 3 * layout.ncp_local, 3 * layout.ncp
-        k, K = 3 * self.nlocal, 3 * self.count
-        self.own = OwnAIJ.from_csr(comm, ((k, K), (n, N)), indptr, indices, bsize=3)
+        # block size 3 where every constraint has three rows
+        self.own = OwnAIJ.from_csr(comm, ((k, K), (n, N)), indptr, indices,
+                                   bsize=3 if nr == 3 else None)
         self.cslot, self.hslot = self.own.place(self.cslot), self.own.place(self.hslot)
         self.values = self.own.values
         self.values[self.hslot] = holds.values[hi_ent][:, None, :]
@@ -135,21 +155,20 @@ class ConstraintAssembly:
         self.gather_points = PETSc.Scatter().create(
             x, _block_is(comm, need), self.points, None)
         x.destroy()
-        # contacts whose curvature reaches this rank's rows, and their μ
-        cp0, cp1 = layout.cp_start, layout.cp_end
-        touch = (contacts.cols >= cp0) & (contacts.cols < cp1)
-        self.touching = np.flatnonzero(touch.any(axis=1))
-        rows_mu = 3 * cpos[self.touching][:, None] + np.arange(3)
+        # the μ of the contacts whose curvature reaches this rank's rows
+        rows_mu = first[cpos[self.touching]][:, None] + np.arange(nr)
         self.mu = PETSc.Vec().createSeq(rows_mu.size, comm=PETSc.COMM_SELF)
         lam = self.C.createVecLeft()
         self.gather_mu = PETSc.Scatter().create(
             lam, PETSc.IS().createGeneral(rows_mu.ravel().astype(PETSc.IntType),
                                           comm=PETSc.COMM_SELF), self.mu, None)
         lam.destroy()
+        self.rows, self.contact_kind = nr, contacts.kind
         self.local = contacts.select(self.mine)          # rows of this rank
         self.reaching = contacts.select(self.touching)   # into its tangent rows
         self.nonlinear = contacts.count > 0               # C depends on ε
         self.B = None          # curvature_operator in the owning model's tangent
+        self.reanchored = 0    # sliding crossings' reference tangents moved
 
     def _points(self, x):
         """Control points read by this rank's rows, from the state x (Vec)."""
@@ -160,7 +179,7 @@ class ConstraintAssembly:
         """g(ε) into the Vec g (C's row layout). Collective."""
         P = self._points(x)
         out = g.getArray()
-        out[self.crow[:, None] + np.arange(3)] = \
+        out[self.crow[:, None] + np.arange(self.rows)] = \
             self.local.values(P[self.ghost_c])
         w = self.values[self.hslot]                                # (n, 3, 4)
         out[self.hrow[:, None] + np.arange(3)] = \
@@ -180,19 +199,74 @@ class ConstraintAssembly:
         elements to add to the tangent's pattern."""
         return self.reaching.cols
 
+    @property
+    def diagonal_curvature(self):
+        """Whether a contact's Hessians are blocks h ⊗ I₃ (fixed crossings)
+        rather than full 3 × 3 blocks (sliding crossings)."""
+        return self.contact_kind == "fixed"
+
     def curvature_operator(self, slots, nnz):
         """The curvature Σ_i μ_i ∇²g_i of the contacts that reach this rank's
-        rows, into a tangent's ``nnz`` values (``Curvature``); ``slots``
-        (len(touching), 3, 8, 8) the value slots of entry (3k + d, 3l + d)
-        of each contact element at [c, d, k, l] (−1 off this rank's rows;
-        ``ElementPattern.blocks3`` with ``diagonal``)."""
-        return Curvature(self.reaching.hessians(), slots, nnz)
+        rows, into a tangent's ``nnz`` values; ``slots`` from
+        ``ElementPattern.blocks3`` (−1 off this rank's rows). Fixed crossings
+        (``Curvature``): (len(touching), 3, 8, 8), the slot of entry
+        (3k + d, 3l + d) at [c, d, k, l] (``diagonal``); sliding crossings
+        (``sliding.BlockCurvature``): (len(touching), 3K, 3K), full blocks."""
+        if self.diagonal_curvature:
+            return Curvature(self.reaching.hessians(), slots, nnz)
+        return BlockCurvature(self.reaching, slots, nnz)
 
-    def add_curvature(self, mu, weight, values):
+    def add_curvature(self, mu, weight, values, x=None):
         """values += weight · Σ_i μ_i ∇²g_i (the owning model's tangent
-        values, through ``self.B``, its ``Curvature``). Collective."""
+        values, through ``self.B``, its curvature operator), at the state x
+        (needed by sliding crossings, whose Hessians depend on it).
+        Collective."""
         self.gather_mu.scatter(mu, self.mu)
-        self.B.add(self.mu.getArray(readonly=True), weight, values)
+        mu = self.mu.getArray(readonly=True)
+        if self.diagonal_curvature:
+            self.B.add(mu, weight, values)
+        else:
+            self.B.add(mu, weight, values, self._points(x)[self.ghost_r])
+
+    def commit(self, x):
+        """An accepted state x: sliding crossings start the search for their
+        point from there; returns how many sit at an end of their window
+        (collective; 0 for fixed crossings)."""
+        if self.diagonal_curvature:
+            return 0
+        P = self._points(x)
+        self.reanchored += self.local.commit(P[self.ghost_c])
+        self.reaching.commit(P[self.ghost_r])
+        return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
+
+    def sliding_parameters(self):
+        """Every sliding crossing's committed s, reference parameters σ and
+        reference tangents' weights χ, (ncontacts, 4 + 4W) on every rank, for
+        a checkpoint (collective); None for fixed crossings."""
+        if self.diagonal_curvature:
+            return None
+        loc = self.local
+        parts = self.comm.tompi4py().allgather((self.mine, np.concatenate(
+            [loc.s, loc.sT, loc.chi.reshape(loc.count, -1)], axis=1)))
+        s = np.zeros((sum(len(m) for m, _ in parts), 4 + 4 * loc.width))
+        for mine, part in parts:
+            s[mine] = part
+        return s
+
+    def set_sliding_parameters(self, s):
+        """Commit the sliding parameters (``sliding_parameters``)."""
+        s = np.asarray(s, dtype=float)
+        for part, which in ((self.local, self.mine), (self.reaching, self.touching)):
+            part.s, part.s_star, part.sT = s[which, :2], s[which, :2], s[which, 2:4]
+            part.chi = s[which, 4:].reshape(len(which), 2, -1)
+            part.solved_at = None
+
+    def slides(self):
+        """Arc lengths (n, 2) along both yarns by which this rank's sliding
+        crossings have moved from rest (none for fixed crossings)."""
+        if self.diagonal_curvature:
+            return np.zeros((0, 2))
+        return self.local.slide_lengths()
 
     def destroy(self):
         for obj in (self.C, self.points, self.gather_points, self.mu, self.gather_mu):

@@ -114,6 +114,9 @@ class Contacts:
     scale: np.ndarray
     rest: np.ndarray
 
+    rows = 3                      # scalar rows a contact
+    kind = "fixed"
+
     @property
     def count(self):
         return len(self.owner)

@@ -27,11 +27,13 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 from solvers.aij import OwnAIJ
+from solvers.integrators import SimulationError
 
 from knitfem.contact import constraints as cons
 from knitfem.model.assembly import (ElementPattern, YarnLayout, create_aij, csr_rows,
                                     kron_identity)
 from knitfem.contact.colliders import Barrier
+from knitfem.contact import sliding
 from knitfem.contact.constraint_assembly import ConstraintAssembly
 from knitfem.errors import KnitError
 from knitfem.yarn import bspline
@@ -96,13 +98,15 @@ class FullModel:
     yarns' stretching energy out (for an embedded model that measures it its
     own way, ``shell.ShellStretch``); ``yarn_contact`` adds the barrier
     E_y that keeps yarns apart (``contact.yarn_contact``), whose tangent
-    pattern follows the active pairs (``begin_step``).
+    pattern follows the active pairs (``begin_step``); ``contacts`` "fixed"
+    (crossings at fixed spline parameters, ``constraints``) or "sliding"
+    (``sliding``, windows of ``slide_margin`` segments either side).
     """
 
     kind = "full"
 
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
-                 stretch=True, yarn_contact=False):
+                 stretch=True, yarn_contact=False, contacts="fixed", slide_margin=2):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
         nseg, closed = fabric.yarn_nseg, fabric.closed
@@ -137,8 +141,11 @@ class FullModel:
             self.m = create_aij(comm, (n, N), (n, N), m_csr)
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
-            self.constraints = cons_asm = ConstraintAssembly(
-                comm, lay, *cons.build(fabric))
+            crossings, holds = cons.build(fabric)
+            if contacts == "sliding":
+                crossings = sliding.crossings(fabric, slide_margin)
+            self.constraints = cons_asm = ConstraintAssembly(comm, lay, crossings,
+                                                             holds)
             self.C = cons_asm.C
             x = self.start_state()
             cons_asm.jacobian(x)                 # C valid from the start
@@ -199,12 +206,18 @@ class FullModel:
     # -- mechanics -----------------------------------------------------------
     def begin_step(self, x):
         """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``); the
-        tangent's pattern is laid out again around x when the yarn pairs
-        near contact no longer fit it. Returns whether it was (the Newton
-        matrix must then be made again). Collective."""
+        reference points are taken there (lagged, ``colliders``); sliding
+        crossings start the search for their point from there, and must lie
+        inside their windows; the tangent's pattern is laid out again around
+        x when the yarn pairs near contact no longer fit it. Returns whether
+        it was (the Newton matrix must then be made again). Collective."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x))
+        out = self.constraints.commit(x)
+        if out:
+            raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
+                                  f"their window: widen it with -knit_slide_margin",
+                                  curable=False)
         yc = self.yarn_contact
         if yc is None or self._tangent is None:
             return False
@@ -330,7 +343,7 @@ class FullModel:
                 sets.append(self.yarn_contact.pair_points(self.all_conn))
             tangent = ElementPattern(sets, lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts, *_) = \
-                tangent.blocks3(diagonal=(1,))
+                tangent.blocks3(diagonal=(1,) if cons_asm.diagonal_curvature else ())
             n, N = 3 * lay.ncp_local, 3 * lay.ncp
             K = OwnAIJ.from_csr(self.comm, ((n, N), (n, N)), indptr3, indices3, bsize=3)
             self.tangent_slot3 = np.ascontiguousarray(K.place(slot3_yarn),
@@ -397,7 +410,7 @@ class FullModel:
                 self._add_contact_hessian(x, values)
         if mu is not None and weight:
             with EV_TANGENT:
-                self.constraints.add_curvature(mu, weight, values)
+                self.constraints.add_curvature(mu, weight, values, x)
         with EV_ASSEMBLY:
             self.K.assemble()
         return self.K
@@ -412,7 +425,8 @@ class FullModel:
         in the block as well), so that its own saddle point is solvable."""
         lay = self.layout
         offset, nyarn = lay.yarn_offset, lay.nyarn
-        row_low, row_high = np.repeat(self.constraints.reach, 3, axis=0).T
+        row_low, row_high = np.repeat(self.constraints.reach,
+                                      self.constraints.nrows, axis=0).T
         blocks = []
         for first in range(lay.yarn_start, lay.yarn_end, size):
             lo = max(first - overlap, 0)
@@ -421,6 +435,21 @@ class FullModel:
             rows = np.flatnonzero((row_low >= lo) & (row_high < hi))
             blocks.append((coords, rows))
         return blocks
+
+    def slide_report(self, x):
+        """``max_slide_m``, the largest arc length by which a sliding crossing
+        has moved along one of its yarns from rest to the (accepted) state x,
+        and ``slide_reanchored``, how often a crossing's reference tangents
+        moved (``sliding.SlidingCrossings.commit``); {} for fixed crossings
+        (collective)."""
+        if self.constraints.diagonal_curvature:
+            return {}
+        self.constraints.commit(x)
+        slides = self.constraints.slides()
+        return dict(max_slide_m=max_over_ranks(
+            self.comm, float(slides.max()) if slides.size else 0.0),
+            slide_reanchored=self.comm.tompi4py().allreduce(
+                self.constraints.reanchored))
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""

@@ -308,7 +308,8 @@ class Simulation:
         extra = dict(initial_lowest=self.initial_lowest, integrator=state,
                      steps_taken=self.steps_taken, energy=self.energy,
                      restarted_from=self.restarted_from,
-                     min_yarn_gap=self.gaps and (self.gaps.smallest, self.gaps.time))
+                     min_yarn_gap=self.gaps and (self.gaps.smallest, self.gaps.time),
+                     sliding=self.full.constraints.sliding_parameters())
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
                                  extra, self.frames) if self.comm.rank == 0 else None
@@ -354,6 +355,8 @@ class Simulation:
         lo, hi = self.x.getOwnershipRange()
         self.x.getArray()[:], self.v.getArray()[:] = ckpt.x[lo:hi], ckpt.v[lo:hi]
         self.t, self.step_count = ckpt.t, ckpt.step
+        if ckpt.extra.get("sliding") is not None:     # where crossings had slid
+            self.full.constraints.set_sliding_parameters(ckpt.extra["sliding"])
         self.stats.update(ckpt.stats)
         self.frames = []
         if self.comm.rank == 0 and self.output is not None:   # drawn again
@@ -625,7 +628,8 @@ class Simulation:
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
-                   ksp_iterations=self.stats["ksp"], **m)
+                   ksp_iterations=self.stats["ksp"], **m,
+                   **self.full.slide_report(self.eps))
         if rec["adaptive"]:
             rec.update(rtol=control.rtol, atol=control.atol)
         if getattr(s, "sampling", None):

@@ -1,0 +1,356 @@
+"""Sliding crossings: two yarns interlocked at a point that slides along both.
+
+A persistent crossing of yarn a with yarn b holds one scalar constraint at a
+point that moves along both yarns. With the separation and the reference
+tangents
+
+    r(ε, s) = P_a(s_a) − P_b(s_b),   T_a = P_a'(σ_a),   T_b = P_b'(σ_b),
+
+(σ the pattern's crossing parameters at the start: T is linear in ε and
+turns with the yarns) the sliding parameters s = (s_a, s_b) are eliminated: at every
+evaluation s*(ε) solves the crossing conditions
+
+    c(ε, s) = (r·T_a, r·T_b) = 0,   A = c_s = (t_i·T_j),   t = r_s,
+
+(r along the yarns' common normal T_a × T_b) by a few vectorised Newton
+iterations from the s of the last accepted state (state: s* is one
+continuous function of ε within a step, so the interlock cannot jump). The
+crossing holds
+
+    g(ε) = G(ε, s*(ε)) = (|r|² − δ²) / (2δ),
+
+δ the rest separation. At rest the crossing is the closest approach (r ⟂
+t_a, t_b with t = T): A is the Gram matrix of two tangents crossing at 64°
+on the jersey, well conditioned, with no curvature term. (The closest
+approach itself, r·t_a = r·t_b = 0 at the current tangents, has
+A = r_sᵀ r_s + r·r_ss: on the jersey's interlocks the loops wrap around
+each other so that its smallest eigenvalue is 7 % of the largest at rest
+and vanishes under a pull, where s* jumps.)
+
+g depends on ε only (a holonomic constraint: its force does no work on any
+motion that keeps it, so sliding dissipates nothing), and with the
+multipliers η = −A⁻ᵀ G_s of the Lagrangian L = G + ηᵀc (L_s = 0 at s*)
+
+    ∇g = L_ε = G_ε + ηᵀ c_ε,
+    ∇²g = L_εε + L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S,   S = ∂s*/∂ε = −A⁻¹ c_ε,
+
+with G_ε,k = w_k r/δ, G_s = r·t/δ, c_ε,jk = w_k T_j + χ_jk r (w, χ the
+weights of r and T), full 3 × 3 blocks (``BlockCurvature``). g, c and A
+are dot products of vectors that turn with the fabric and do not move
+under a translation, so every rigid motion keeps g. s carries no mass:
+the yarn's inertia is in ε, its material moves through the crossing point.
+At the two straight yarns' crossing r·t = 0, so η = 0 and the force is
+w_k r/δ, along the normal.
+
+Weights live on a window of 4 + 2m control points a yarn (m the margin in
+segments either side of the rest segment), so that C(ε) keeps one sparsity
+pattern while s* moves up to m segments. Inside a step's Newton iterations
+s* is held in its window; a step that ends with a crossing at the end of
+its window is refused (``FullModel.begin_step``), with the advice to widen
+the margin. The reference tangents follow a crossing that slides along a
+loop: at an accepted state where s* is more than half a segment from where
+they were taken, they are taken again there, T_j = t_j − β_j r with
+β_j = r·t_j / r·r, so that r·T = 0 still holds at that state: s* and g do
+not move, only g's gradient tilts by O(η) (``commit``; the summary counts
+these re-anchorings).
+"""
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import scipy.sparse as sp
+
+from knitfem.errors import KnitError
+from knitfem.yarn import bspline
+
+__all__ = ["SlidingCrossings", "BlockCurvature", "SlidError", "crossings"]
+
+NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
+NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
+MAX_STEP = 0.25            # largest Newton step in segments
+REANCHOR = 0.5            # slide [segments] after which the reference tangents move
+EDGE = 1e-9                # a window's last parameter short of its end (its segment)
+
+
+def inverse2(A):
+    """Inverses (n, 2, 2) of 2 × 2 matrices A (n, 2, 2), in closed form
+    (a batched LAPACK solve costs 100 times more at these sizes)."""
+    inv = np.empty_like(A)
+    inv[:, 0, 0], inv[:, 1, 1] = A[:, 1, 1], A[:, 0, 0]
+    inv[:, 0, 1], inv[:, 1, 0] = -A[:, 0, 1], -A[:, 1, 0]
+    return inv / (A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])[:, None, None]
+
+
+class SlidError(KnitError):
+    """A crossing slid out of the window of control points of its pattern."""
+
+
+@dataclass
+class SlidingCrossings:
+    """Crossings that slide (module docstring), one scalar row each.
+
+    owner (n,) the yarn of P_a; cols (n, 2W) global control points of the two
+    windows (W = 4 + 2 margin, yarn a's then yarn b's); first (n, 2) the
+    first segment of each window; nseg (n, 2) and closed (n, 2) the two
+    yarns' segments and closure; delta (n,) the rest separation; s (n, 2) the committed sliding
+    parameters (state: where every evaluation's search for s* starts
+    from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
+    of the windows (arc lengths); sT (n, 2) the parameters σ where the
+    reference tangents were taken, chi (n, 2, 2W) their weights. ``s_star``
+    holds the last evaluation's s*.
+    """
+
+    owner: np.ndarray
+    cols: np.ndarray
+    first: np.ndarray
+    delta: np.ndarray
+    s: np.ndarray
+    s0: np.ndarray
+    X: np.ndarray
+    sT: np.ndarray
+    chi: np.ndarray
+    nseg: np.ndarray
+    closed: np.ndarray
+
+    rows = 1                      # scalar rows a crossing
+    kind = "sliding"
+
+    def __post_init__(self):
+        self.s_star, self.solved_at = self.s.copy(), None
+
+    @property
+    def count(self):
+        return len(self.owner)
+
+    @property
+    def width(self):
+        """Control points of a window, W = 4 + 2 margin."""
+        return self.cols.shape[1] // 2
+
+    def select(self, keep):
+        """The crossings where ``keep`` (bool or index array) is true (their
+        own copy of the state s)."""
+        arrays = {f.name: np.array(getattr(self, f.name)[keep]) for f in fields(self)}
+        return SlidingCrossings(**arrays)
+
+    # -- weights on the windows ------------------------------------------------
+    def weights(self, s, nu=(0, 1, 2)):
+        """Weights (len(nu), n, 2, W) of d^nu P/ds^nu at s (n, 2) on each
+        side's window, for the derivative orders ``nu``.
+
+        Raises ``SlidError`` where s lies outside its window."""
+        W, n = self.width, len(s)
+        k, u = bspline.locate(s, self.nseg, self.closed)
+        o = np.where(self.closed, np.mod(k - self.first, self.nseg), k - self.first)
+        out = (o < 0) | (o > W - 4)
+        if out.any():
+            c = int(np.flatnonzero(out.any(axis=1))[0])
+            raise SlidError(f"crossing {c} slid out of its window of {W} control "
+                            f"points (s = {s[c].round(3).tolist()}, rest "
+                            f"{self.s0[c].round(3).tolist()}): widen it with "
+                            f"-knit_slide_margin")
+        w = np.zeros((len(nu), n, 2, W))
+        w[:, np.arange(n)[:, None, None], np.arange(2)[:, None], o[..., None]
+          + np.arange(4)] = [bspline.basis(u, d) for d in nu]
+        return w
+
+    def _geometry(self, P, s):
+        """r (n, 3), its weights w (n, 2W), r_s (n, 2, 3), the weights of r_s
+        (n, 2, 2W) and r_ss's diagonal (n, 2, 3) at s, for points P (n, 2W, 3)."""
+        W = self.width
+        b0, b1, b2 = self.weights(s)
+        sign = np.array([1.0, -1.0])[None, :, None]
+        w = np.concatenate([b0[:, 0], -b0[:, 1]], axis=1)
+        ws = np.zeros((len(s), 2, 2 * W))
+        ws[:, 0, :W], ws[:, 1, W:] = b1[:, 0], -b1[:, 1]
+        Pw = P.reshape(len(s), 2, W, 3)
+        r = np.einsum("nk,nkd->nd", w, P)
+        rs = sign * np.einsum("njk,njkd->njd", b1, Pw)
+        rss = sign * np.einsum("njk,njkd->njd", b2, Pw)
+        return r, w, rs, ws, rss
+
+    def _chord_weights(self):
+        """Weights χ (n, 2, 2W) of the reference tangents T = Σ_k χ_k p_k."""
+        return self.chi
+
+    def _chords(self, P):
+        """The reference tangents T (n, 2, 3): directions along the two
+        yarns at the crossing that depend on ε only."""
+        return np.einsum("njk,nkd->njd", self.chi, P)
+
+    def anchor(self, P, which):
+        """Reference tangents of the crossings ``which`` at their s:
+        T_j = t_j − β_j r, β_j = r·t_j / r·r at the points P, so that r·T = 0
+        there and s* at P stays s."""
+        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s)[:4])
+        beta = np.einsum("nd,njd->nj", r, rs) / np.einsum("nd,nd->n", r, r)[:, None]
+        self.chi[which] = ws - beta[..., None] * w[:, None, :]
+        self.sT[which] = self.s[which]
+
+    def _along(self, ds):
+        """Parameter differences ds (n, 2), the short way round a closed yarn."""
+        return np.where(self.closed, np.mod(ds + 0.5 * self.nseg, self.nseg)
+                        - 0.5 * self.nseg, ds)
+
+    def clamp(self, s):
+        """s held inside its window (the window's ends where it left)."""
+        rel = self._along(s - self.first)
+        return self.first + np.clip(rel, 0.0, self.width - 3.0 - EDGE)
+
+    def at_edge(self):
+        """Crossings (indices) whose last s* lies on an end of its window."""
+        rel = self._along(self.clamp(self.s_star) - self.first)
+        return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0 - EDGE))
+                              .any(axis=1))
+
+    def solve(self, P):
+        """s* (n, 2): the crossing c = (r·T_a, r·T_b) = 0 reached from the
+        committed s (``commit``) by Newton's method, c_s = (t_i·T_j), steps
+        of at most ``MAX_STEP``, held inside the windows (a state far off,
+        as a Newton iterate may be, puts s* at a window's end: ``at_edge``).
+        Stored as ``s_star`` and returned; the points P of the last solve
+        are kept, so that g, C and ∇²g at one state solve once."""
+        if self.solved_at is not None and np.array_equal(P, self.solved_at):
+            return self.s_star
+        T = self._chords(P)
+        s = self.s.copy()
+        for _ in range(NEWTON_STEPS):
+            r, _, rs = self._geometry(P, s)[:3]
+            c = np.einsum("nd,njd->nj", r, T)
+            ds = -np.einsum("nij,nj->ni", inverse2(np.einsum("nid,njd->nji", rs, T)), c)
+            new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
+            ds, s = new - s, new
+            if not ds.size or np.abs(ds).max() < NEWTON_TOL:
+                break
+        self.s_star, self.solved_at = s, P.copy()
+        return s
+
+    def commit(self, P):
+        """Take the crossing at the points P (an accepted state) as the new
+        start s of the next evaluations; a crossing that has slid more than
+        ``REANCHOR`` segments from its reference parameters σ takes its
+        reference tangents at s (``anchor``): on a loop the tangents turn as
+        the crossing slides, and A would lose rank. Returns how many were
+        re-anchored."""
+        self.s = self.solve(P).copy()
+        far = np.flatnonzero(np.abs(self.s - self.sT).max(axis=1) > REANCHOR)
+        if far.size:
+            self.anchor(P, far)
+        self.solved_at = None
+        return len(far)
+
+    # -- constraint, Jacobian, Hessian -------------------------------------------
+    def values(self, P):
+        """g (n, 1) = (|r|² − δ²)/(2δ) at s*, for the points P (n, 2W, 3)."""
+        r = self._geometry(P, self.solve(P))[0]
+        d = self.delta
+        return ((np.einsum("nd,nd->n", r, r) - d * d) / (2 * d))[:, None]
+
+    def _terms(self, P):
+        """What ∇g and ∇²g are made of at s* (module docstring): r, w, r_s,
+        its weights, r_ss, T, χ, A = c_s (n, 2, 2), c_ε (n, 2, 3K) and the
+        multipliers η = −A⁻ᵀ G_s (n, 2)."""
+        r, w, rs, ws, rss = self._geometry(P, self.solve(P))
+        T, chi = self._chords(P), self._chord_weights()
+        n, K = w.shape
+        A = np.einsum("nid,njd->nji", rs, T)
+        c_eps = (w[:, None, :, None] * T[:, :, None, :]
+                 + chi[..., None] * r[:, None, None, :]).reshape(n, 2, 3 * K)
+        G_s = np.einsum("nd,nid->ni", r, rs) / self.delta[:, None]
+        eta = -np.einsum("nji,nj->ni", inverse2(A), G_s)
+        return r, w, rs, ws, rss, T, chi, A, c_eps, eta
+
+    def gradients(self, P):
+        """∂g/∂p (n, 1, 2W, 3) = G_ε + ηᵀ c_ε at s*."""
+        r, w, _, _, _, _, _, _, c_eps, eta = self._terms(P)
+        n, K = w.shape
+        G_eps = w[:, :, None] * r[:, None, :] / self.delta[:, None, None]
+        return (G_eps.reshape(n, 3 * K) + np.einsum("nj,nja->na", eta, c_eps)
+                ).reshape(n, 1, K, 3)
+
+    def hessians(self, P):
+        """∇²g (n, 6W, 6W) at s*, entry (3k + p, 3l + q):
+        L_εε + L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S, S = ∂s*/∂ε = −A⁻¹ c_ε
+        (module docstring)."""
+        r, w, rs, ws, rss, T, chi, A, c_eps, eta = self._terms(P)
+        n, K = w.shape
+        d = self.delta
+        ww = np.einsum("nk,nl->nkl", w, w) / d[:, None, None]
+        wc = np.einsum("nj,nk,njl->nkl", eta, w, chi)
+        M = ww + wc + wc.transpose(0, 2, 1)
+        H = np.zeros((n, 3 * K, 3 * K))
+        H.reshape(n, K, 3, K, 3)[...] += M[:, :, None, :, None] * np.eye(3)[:, None]
+        L_es = ((ws.transpose(0, 2, 1)[:, :, None, :] * r[:, None, :, None]
+                 + w[:, :, None, None] * rs.transpose(0, 2, 1)[:, None])
+                / d[:, None, None, None]
+                + np.einsum("nj,nik,njp->nkpi", eta, ws, T)
+                + np.einsum("nj,njk,nip->nkpi", eta, chi, rs)).reshape(n, 3 * K, 2)
+        L_ss = np.einsum("nid,njd->nij", rs, rs) / d[:, None, None]
+        L_ss[:, [0, 1], [0, 1]] += (np.einsum("nd,nid->ni", r, rss) / d[:, None]
+                                    + np.einsum("nj,nid,njd->ni", eta, rss, T))
+        S = -inverse2(A) @ c_eps
+        LS = L_es @ S
+        return H + LS + LS.transpose(0, 2, 1) + S.transpose(0, 2, 1) @ L_ss @ S
+
+    # -- how far the crossings slid ------------------------------------------------
+    def slide_lengths(self, nq=8):
+        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
+        x, wq = bspline.gauss(nq)
+        ds = self._along(self.s_star - self.s0)
+        speed = np.zeros(self.s.shape)
+        Xw = self.X.reshape(self.count, 2, self.width, 3)
+        for xq, w in zip(x, wq):
+            tq = np.einsum("njk,njkd->njd", self.weights(self.s0 + xq * ds, (1,))[0],
+                           Xw)
+            speed += w * np.linalg.norm(tq, axis=-1)
+        return np.abs(ds) * speed
+
+
+class BlockCurvature:
+    """Σ_i μ_i ∇²g_i of sliding crossings added into a tangent's values.
+
+    ∇²g_i depends on ε through s* and has full 3 × 3 blocks: at every call
+    the crossings' Hessians (n, 3K, 3K) go to their slots (``slots``, same
+    shape, −1 off this rank's rows) through a constant 0/1 matrix S
+    (nnz × 9K² n), built once."""
+
+    def __init__(self, crossings, slots, nnz):
+        self.crossings = crossings
+        flat = slots.reshape(-1)
+        keep = np.flatnonzero(flat >= 0)
+        self.S = sp.csc_matrix((np.ones(len(keep)), (flat[keep], keep)),
+                               shape=(nnz, flat.size))
+
+    def add(self, mu, weight, values, P):
+        """values += weight · Σ_i μ_i ∇²g_i at the crossings' points P."""
+        H = self.crossings.hessians(P)
+        values += self.S @ ((weight * np.asarray(mu))[:, None, None] * H).ravel()
+
+
+def crossings(fabric, margin=2):
+    """Sliding crossings of a ``Fabric``'s contacts, each starting at its
+    pattern parameters (the closest approach at rest), with windows of
+    margin segments either side."""
+    ya, sa, yb, sb = fabric.contacts
+    yarn = np.stack([ya, yb], axis=1).astype(np.int64)
+    ncp, nseg = fabric.yarn_ncp[yarn], fabric.yarn_nseg[yarn]
+    closed = fabric.closed[yarn]
+    W = 4 + 2 * margin
+    short = ~closed & (nseg < W - 3)
+    if short.any():
+        raise KnitError(f"sliding crossings need yarns of at least {W - 3} "
+                        f"segments (margin {margin}); one has {nseg[short].min()}")
+    s0 = np.stack([sa, sb], axis=1).astype(float)
+    k, _ = bspline.locate(s0, nseg, closed)
+    first = np.where(closed, np.mod(k - margin, nseg),
+                     np.clip(k - margin, 0, nseg - W + 3))
+    span = first[..., None] + np.arange(W)
+    span = np.where(closed[..., None], np.mod(span, ncp[..., None]), span)
+    cols = (fabric.yarn_start[yarn][..., None] + span).reshape(len(s0), 2 * W)
+    X = fabric.X[cols]
+    c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
+                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed)
+    c.anchor(X, np.arange(len(s0)))
+    r = c._geometry(X, c.s0)[0]
+    c.delta = np.linalg.norm(r, axis=1)
+    return c

@@ -1,0 +1,202 @@
+"""Sliding crossings: g at the closest approach s*(ε), its exact gradient and
+Hessian (s* re-solved at every finite-difference point), frame
+indifference, and a yarn that slides through a crossing without friction.
+The model tests run serial and under mpirun (COMM_WORLD)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from helpers import (COMM, central, constraints_off_rest, gather, jersey, run,
+                     state)
+from knitfem.cli.scenes import rotation
+from knitfem.contact import sliding
+from knitfem.knit.fabric import Fabric
+from knitfem.model.full import FullModel, Material
+from solvers.integrators import BackwardEuler
+
+
+@pytest.fixture(scope="module")
+def model():
+    m = FullModel(COMM, jersey(4, 3, hold="top"), Material(), contacts="sliding")
+    yield m
+    m.destroy()
+
+
+def perturbed(model, seed, amplitude):
+    rng = np.random.default_rng(seed)
+    return model.fabric.X + amplitude * rng.standard_normal(model.fabric.X.shape)
+
+
+def residual(model, x):
+    g = model.C.createVecLeft()
+    model.constraint_residual(x, g)
+    return gather(COMM, g)
+
+
+def crossing_residual(crossings, P):
+    """max |r·T_a|, |r·T_b| over the crossings at their last s*, in m²."""
+    r = crossings._geometry(P, crossings.s_star)[0]
+    return np.abs(np.einsum("nd,njd->nj", r, crossings._chords(P))).max(initial=0.0)
+
+
+def test_one_row_a_crossing_that_holds_at_rest_and_under_rigid_motions(model):
+    contact = np.repeat(model.constraint_kind, model.constraints.nrows) == "contact"
+    assert model.constraints.rows == 1
+    assert contact.sum() == 2 * 3 * (4 - 1)            # one row a crossing
+    assert np.abs(residual(model, model.rest_state())).max() < 1e-18
+    X = perturbed(model, 1, 2e-5)
+    g0 = residual(model, state(model, X))
+    centre = X.reshape(-1, 3).mean(axis=0)
+    for turn in [(90, 0, 0), (0, 45, 0), (30, -60, 120)]:
+        Y = (X - centre) @ rotation(turn).T + centre + np.array([0.3, -0.1, 0.2])
+        g = residual(model, state(model, Y))
+        # a distance: rigid motions change it by round-off (measured 1e-16 m
+        # of g ≈ 4e-5 m)
+        assert np.abs(g[contact] - g0[contact]).max() < 1e-15
+        assert np.abs(g[~contact]).max() > 1e-3        # world holds do care
+
+
+def test_crossing_conditions_hold_after_every_evaluation(model):
+    asm = model.constraints
+    for seed in (2, 3):
+        x = state(model, perturbed(model, seed, 2e-5))
+        for evaluate in (lambda: residual(model, x),
+                         lambda: model.constraint_jacobian(x),
+                         lambda: model.stiffness(x, model.C.createVecLeft(), 1.0)):
+            evaluate()
+            P = asm._points(x)
+            # |r| |t| ≈ 1e-3 · 2e-3 m²: round-off (measured ≤ 3e-21)
+            assert crossing_residual(asm.local, P[asm.ghost_c]) < 1e-18
+        # the crossings reaching the tangent's rows: evaluated by the tangent
+        assert crossing_residual(asm.reaching, P[asm.ghost_r]) < 1e-18
+
+
+def test_gradient_and_hessian_against_finite_differences(model):
+    """C = ∂g/∂ε and Σ μ_i ∇²g_i = ∂(Cᵀμ)/∂ε by central differences whose
+    states re-solve s*: errors fall as h² (measured 1.5e-6 and 2e-5 relative
+    at h = 1e-2, 100 × less at 1e-3)."""
+    x = state(model, perturbed(model, 4, 2e-5))
+    dx = state(model, perturbed(model, 5, 1e-5))
+    dx.axpy(-1.0, model.rest_state())
+    Cdx = model.C.createVecLeft()
+    model.constraint_jacobian(x).mult(dx, Cdx)
+    exact = gather(COMM, Cdx)
+    mu = model.C.createVecLeft()
+    lo, hi = mu.getOwnershipRange()
+    mu.getArray()[:] = np.random.default_rng(6).standard_normal(mu.getSize())[lo:hi]
+    K0 = model.stiffness(x).copy()
+    H = model.stiffness(x, mu, 2.0).copy()
+    H.axpy(-1.0, K0)
+    Hdx = x.duplicate()
+    H.mult(dx, Hdx)
+    hess = gather(COMM, Hdx) / 2.0
+
+    def force(y):
+        out = y.duplicate()
+        model.constraint_jacobian(y).multTranspose(mu, out)
+        return gather(COMM, out)
+
+    errors = []
+    for h in (1e-2, 1e-3):
+        fd = central(lambda y: residual(model, y), x, dx, h)
+        fdH = central(force, x, dx, h)
+        errors.append((np.abs(fd - exact).max() / np.abs(exact).max(),
+                       np.abs(fdH - hess).max() / np.abs(hess).max()))
+    (g1, h1), (g2, h2) = errors
+    assert g1 < 1e-5 and h1 < 1e-4
+    assert g2 < 3e-2 * g1 + 1e-9 and h2 < 3e-2 * h1 + 1e-9       # O(h²)
+    for A in (K0, H):
+        A.destroy()
+
+
+def test_crossings_numpy_hessian_matches_gradient_differences():
+    """The vectorised kernels alone: ∇²g dP = (∇g(P + h dP) − ∇g(P − h dP))/2h."""
+    c = sliding.crossings(jersey(3, 3))
+    rng = np.random.default_rng(7)
+    P = c.X + 2e-5 * rng.standard_normal(c.X.shape)
+    dP = 1e-5 * rng.standard_normal(P.shape)
+    H = c.hessians(P)
+    h = 1e-3
+    fd = (c.gradients(P + h * dP) - c.gradients(P - h * dP))[:, 0] / (2 * h)
+    exact = np.einsum("nab,nb->na", H, dP.reshape(c.count, -1))
+    # measured 2e-7 relative (O(h²))
+    assert np.abs(fd.reshape(c.count, -1) - exact).max() < 2e-6 * np.abs(exact).max()
+    assert np.abs(H - H.transpose(0, 2, 1)).max() < 1e-12 * np.abs(H).max()
+
+
+def two_straight_yarns(delta=1e-3, spacing=1e-3, ncp=16):
+    """Yarn 0 along x, yarn 1 along y at height delta, crossing at their middles."""
+    t = (np.arange(ncp) - (ncp - 1) / 2) * spacing
+    X = np.zeros((2, ncp, 3))
+    X[0, :, 0] = t
+    X[1, :, 1] = t
+    X[1, :, 2] = delta
+    mid = np.array([(ncp - 3) / 2])
+    return Fabric(X, 2.5e-4, contacts=(np.array([0]), mid, np.array([1]), mid))
+
+
+def test_yarn_pulled_lengthwise_slides_through_a_crossing():
+    """Yarn 0, straight, set moving along itself glides through the crossing
+    untouched: no force, uniform motion, kinetic energy kept, the crossing
+    held, slid by v t."""
+    fab = two_straight_yarns()
+    m = FullModel(PETSc.COMM_SELF, fab, Material(gravity=0.0), contacts="sliding")
+    v, dt, n = 0.05, 1e-3, 20
+    shape = (2, -1, 3)                               # two yarns of one length
+    v0 = np.zeros(fab.X.shape).reshape(shape)
+    v0[0, :, 0] = v
+    _, x, vel = run(m, BackwardEuler, dt, n, v0.ravel())
+    moved = (x.getArray().reshape(fab.X.shape) - fab.X).reshape(shape)
+    # uniform motion and kinetic energy kept to round-off (measured 1e-18 m,
+    # 1.5e-15 m/s, 0 relative)
+    assert np.abs(moved[0, :, 0] - v * n * dt).max() < 1e-15
+    assert np.abs(moved[0, :, 1:]).max() < 1e-15 and np.abs(moved[1]).max() < 1e-15
+    assert np.abs(vel.getArray().reshape(shape) - v0).max() < 1e-12
+    kinetic = 0.5 * vel.dot(m.M * vel)
+    assert abs(kinetic / (0.25 * m.total_mass * v * v) - 1) < 1e-12
+    g = m.C.createVecLeft()
+    m.constraint_residual(x, g)
+    assert np.abs(g.getArray()).max() < 1e-15
+    assert abs(m.slide_report(x)["max_slide_m"] - v * n * dt) < 1e-12
+    m.destroy()
+
+
+def test_fixed_crossing_drags_the_other_yarn():
+    fab = two_straight_yarns()
+    m = FullModel(PETSc.COMM_SELF, fab, Material(gravity=0.0))
+    v0 = np.zeros(fab.X.shape).reshape(2, -1, 3)
+    v0[0, :, 0] = 0.05
+    _, x, _ = run(m, BackwardEuler, 1e-3, 20, v0.ravel())
+    moved = (x.getArray().reshape(fab.X.shape) - fab.X).reshape(2, -1, 3)
+    assert np.abs(moved[1]).max() > 1e-2 * 0.05 * 20 * 1e-3
+    m.destroy()
+
+
+def test_parallel_equals_serial():
+    """g, C and K + Σμ∇²g off the rest under mpirun equal one rank's."""
+    fab = jersey(5, 3, hold="top")
+    par, ser = (FullModel(comm, fab, Material(), contacts="sliding")
+                for comm in (PETSc.COMM_WORLD, PETSc.COMM_SELF))
+    rng = np.random.default_rng(8)
+    full = 4e-2 * fab.radius * rng.standard_normal(3 * par.layout.ncp)
+    nrow = par.C.getSize()[0]
+    mu_full = rng.standard_normal(nrow)
+    out = []
+    for m in (par, ser):
+        g, K = constraints_off_rest(m, full, mu_full)
+        out.append((g.getArray().copy(), K.getValuesCSR(), m.C.getValuesCSR(),
+                    K.getOwnershipRange()))
+    (g, K, C, (lo, hi)), (gs, Ks, Cs, _) = out
+    a, b = par.C.getOwnershipRange()
+    # the same Newton iterations for s* on either side: equal to round-off
+    assert np.allclose(g, gs[a:b], rtol=0, atol=1e-15)
+    for (ip, ix, vals), (sip, six, svals), rows, n in (
+            (K, Ks, (lo, hi), par.K.getSize()), (C, Cs, (a, b), par.C.getSize())):
+        mine = sp.csr_matrix((vals, ix, ip), shape=(rows[1] - rows[0], n[1]))
+        ref = sp.csr_matrix((svals, six, sip), shape=n)[rows[0]:rows[1]]
+        assert abs(mine - ref).max() <= 1e-12 * abs(ref).max()
+    par.destroy()
+    ser.destroy()
+
