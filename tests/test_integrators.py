@@ -95,7 +95,7 @@ def test_constraints_hold_to_newton_tolerance_under_step_control():
     model.constraint_jacobian(x).mult(v, rv)
     speed = v.norm(PETSc.NormType.INFINITY)
     assert n > 5 and r.norm(PETSc.NormType.INFINITY) < 1e-9 * fab.radius
-    assert rv.norm(PETSc.NormType.INFINITY) < 1e-2 * speed
+    assert rv.norm(PETSc.NormType.INFINITY) < 2e-3 * speed   # measured 1.9e-4
     assert np.abs(x.getArray() - fab.X.ravel()).max() > 1e-5      # it moved
 
 
@@ -131,7 +131,7 @@ def test_state_continues_bit_exactly(cls):
         st = second.step(t, x1, v1, 0.01)
         t = 0.01 if abs(t + st["dt"] - 0.01) < 1e-12 else t + st["dt"]
     # equal up to the last bits of a fresh factorisation
-    assert np.allclose(x1.getArray(), x.getArray(), rtol=0, atol=1e-15)
+    assert np.allclose(x1.getArray(), x.getArray(), rtol=0, atol=7e-17)  # 6.9e-18
     assert np.allclose(v1.getArray(), v.getArray(), rtol=0, atol=1e-13)
 
 
@@ -178,7 +178,7 @@ def test_position_history_estimate_is_exact_for_a_cubic():
     e = np.zeros(1)
     # a method with local error c h³ ε⃛ = 0.1 h³ · 6 lands here:
     assert hist.estimate(np.array([exact_next + 0.6 * h**3]), h, e)
-    assert e[0] == pytest.approx(0.6 * h**3, rel=1e-12)
+    assert e[0] == pytest.approx(0.6 * h**3, rel=4e-14)    # measured 3.5e-15
 
 
 @pytest.mark.parametrize("method", [BackwardEuler, BDF2, GeneralizedAlpha])
@@ -213,7 +213,7 @@ def test_newton_matrix_is_the_derivative_of_the_residual(method):
         zs.axpy(sign * h, d)
         integ._residual(None, zs, out)
     fd = (F[0].getArray() - F[1].getArray()) / (2 * h)
-    assert np.linalg.norm(Jd.getArray() - fd) <= 1e-8 * np.linalg.norm(fd)
+    assert np.linalg.norm(Jd.getArray() - fd) <= 8e-10 * np.linalg.norm(fd)  # 7.6e-11
     model.destroy()
 
 
@@ -230,7 +230,7 @@ def test_mip_newton_takes_the_first_step_from_rest_in_fewer_iterations():
         first = integ.step(0.0, x, v)["newton"]
         out[tangent] = first, gather(COMM, x), integ.step(1e-2, x, v)["newton"]
     (n_exact, x_exact, then_exact), (n_mip, x_mip, _) = out["exact"], out["mip"]
-    assert np.abs(x_mip - x_exact).max() < 1e-9 * model.fabric.radius
+    assert np.abs(x_mip - x_exact).max() < 5e-11 * model.fabric.radius   # 4.4e-12
     assert 2 * n_mip < n_exact
     # auto: MIP on the first step (no velocity history), exact after
     n_auto, x_auto, then_auto = out["auto"]
@@ -254,7 +254,7 @@ def test_mip_newton_reaches_the_reduced_models_step():
         v.zeroEntries()
         integ.step(0.0, q, v)
         out[tangent] = gather(COMM, red.full_state(q))
-    assert np.abs(out["mip"] - out["exact"]).max() < 1e-12
+    assert np.abs(out["mip"] - out["exact"]).max() < 8e-16    # measured 8e-17
 
 
 @pytest.mark.parametrize("cls,kw", [(BackwardEuler, dict(tangent="mip")),
@@ -283,4 +283,5 @@ def test_backward_euler_from_the_start_reaches_the_extrapolated_guess_state():
         model = pendulum(EI=1e-9)
         x, _, _ = integrate(BackwardEuler(model, 2e-3, guess=guess), model, 0.02)
         ends[guess] = gather(SELF, x)
-    assert np.abs(ends["start"] - ends["extrapolated"]).max() < 1e-6 * model.fabric.radius
+    # measured 4.1e-9 r
+    assert np.abs(ends["start"] - ends["extrapolated"]).max() < 5e-8 * model.fabric.radius
