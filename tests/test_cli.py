@@ -31,7 +31,7 @@ def test_dofs_table_paper_case():
     assert rec["reduced_control_points"] == 50
     assert rec["scalar_constraints"] == 3 * 2 * 30 * 14
     assert rec["unknowns"] == 10935 + 2520
-    assert rec["ratio"] == pytest.approx(13455 / 150)
+    assert rec["ratio"] == pytest.approx(13455 / 150, rel=5e-15)  # measured 0
     # the hanging scene's held course: 30 loop heads, what `knitfem run` counts
     assert rec["fixed_points_hanging"] == 30
     assert rec["unknowns_hanging"] == 13455 + 3 * 30
@@ -354,7 +354,8 @@ def test_krylov_rc_steps_as_the_direct_solver(tmp_path):
     direct, krylov = recs
     assert krylov["newton_iterations"] == direct["newton_iterations"]
     assert krylov["ksp_iterations"] > direct["ksp_iterations"]       # iterated
-    assert np.allclose(krylov["centroid"], direct["centroid"], rtol=0, atol=1e-12)
+    # measured 4.2e-17
+    assert np.allclose(krylov["centroid"], direct["centroid"], rtol=0, atol=5e-16)
 
 
 def test_reduced_drape_defaults_to_the_shell_settling_in_backward_euler(tmp_path):

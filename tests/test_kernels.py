@@ -19,7 +19,7 @@ from knitfem.errors import KnitError
 from knitfem.yarn.elements import YarnElements
 from test_yarn import chain, deformed, helix, relative
 
-TOL = 1e-12
+TOL = 2e-14          # measured at most 1.7e-15 (relative, 1 and 2 ranks)
 
 
 def elements(case):

@@ -81,14 +81,16 @@ def test_every_embedded_element_at_weight_one_is_the_exact_mixed_model(pair):
     assert samp.sampling["exact"] > 0              # border elements stay exact
     q = deformed(exact)
     f, ref = forces(samp, q).getArray(), forces(exact, q).getArray()
-    assert global_max(f - ref) <= 1e-12 * global_max(ref)
-    assert samp.elastic_energy(q) == pytest.approx(exact.elastic_energy(q), rel=1e-12)
+    assert global_max(f - ref) <= 3e-14 * global_max(ref)  # measured 2.8e-15
+    # measured 0
+    assert samp.elastic_energy(q) == pytest.approx(exact.elastic_energy(q), rel=5e-15)
     mu = exact.C.createVecLeft()
     lo, hi = mu.getOwnershipRange()
     mu.getArray()[:] = np.random.default_rng(2).standard_normal(mu.getSize())[lo:hi]
     for m in (None, mu):                # with the kept contacts' curvature
         K, Kref = (to_scipy(s.stiffness(q, m)) for s in (samp, exact))
-        assert global_max((K - Kref).data) <= 1e-12 * global_max(Kref.data)
+        # measured 4.2e-16
+        assert global_max((K - Kref).data) <= 5e-15 * global_max(Kref.data)
     for s in (samp, exact):
         s.destroy()
 
@@ -107,7 +109,8 @@ def test_sampled_tangent_is_the_hessian_of_the_sampled_energy(pair):
     e.setRandom()
     Ke = e.duplicate()
     K.mult(e, Ke)
-    assert abs(e.dot(Kd) - d.dot(Ke)) <= 1e-12 * Kd.norm() * e.norm()   # symmetric
+    # symmetric: measured 1.5e-17
+    assert abs(e.dot(Kd) - d.dot(Ke)) <= 2e-15 * Kd.norm() * e.norm()
     h = 1e-7
     plus, minus = q.copy(), q.copy()
     plus.axpy(h, d)
@@ -116,7 +119,7 @@ def test_sampled_tangent_is_the_hessian_of_the_sampled_energy(pair):
     fd.axpy(-1.0, forces(s, plus))
     fd.scale(1 / (2 * h))
     fd.axpy(-1.0, Kd)
-    assert fd.norm() <= 1e-6 * Kd.norm()
+    assert fd.norm() <= 8e-8 * Kd.norm()  # measured 8e-9
     h = 1e-8                            # E is quartic and stiff: O(h²) error
     plus, minus = q.copy(), q.copy()
     plus.axpy(h, d)
@@ -124,7 +127,7 @@ def test_sampled_tangent_is_the_hessian_of_the_sampled_energy(pair):
     dE = (s.elastic_energy(plus) - s.elastic_energy(minus)) / (2 * h)
     Q = forces(s, q)
     Q.axpy(-1.0, s.Qg)                  # the elastic part (no damping)
-    assert -dE == pytest.approx(Q.dot(d), rel=1e-6)
+    assert -dE == pytest.approx(Q.dot(d), rel=3e-7)  # measured 3.2e-8 on 2 ranks
     s.destroy()
 
 
@@ -134,13 +137,13 @@ def test_rest_and_rigid_motions_are_force_free():
     s = build(full, red, random_rule(5, 1.0, 50.0))
     scale = global_max(forces(s, deformed(s)).getArray())
     q = s.rest_state()
-    assert global_max(forces(s, q).getArray()) <= 1e-9 * scale
+    assert global_max(forces(s, q).getArray()) <= 2e-13 * scale  # measured 1.7e-14
     c, t = np.cos(0.7), np.sin(0.7)
     R = np.array([[c, -t, 0], [t, c, 0], [0, 0, 1]]) @ np.array(
         [[1, 0, 0], [0, c, t], [0, -t, c]])
     qa = q.getArray().reshape(-1, 3)           # ε = Γ_mix q keeps affine maps
     qa[:] = qa @ R.T + [0.01, -0.02, 0.03]
-    assert global_max(forces(s, q).getArray()) <= 1e-9 * scale
+    assert global_max(forces(s, q).getArray()) <= 3e-13 * scale  # measured 2.7e-14
     for obj in (s, red, full):
         obj.destroy()
 

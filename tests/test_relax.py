@@ -35,9 +35,9 @@ def test_natural_fabric_has_the_loop_length_asked_and_no_natural_curvature():
     el = YarnElements(fab.X, fab.connectivity(0, fab.nyarn), 1, 1, 1,
                       natural=fab.natural)
     assert not el.kappa0.any() and fab.separation == 2 * j.radius
-    # the start is the template stretched along the courses about its centroid
+    # the start is the rest stretched along the courses about its centroid
     c = template.X.mean(axis=0)
-    assert np.allclose(fab.start_X - c, (template.X - c) * [1.2, 1.0, 1.0],
+    assert np.allclose(fab.start_X - c, (fab.X - c) * [1.2, 1.0, 1.0],
                        rtol=0, atol=1e-15)
     back = stress_free(fab)
     assert back.X is fab.start_X and not back.natural and back.separation is None
@@ -96,3 +96,27 @@ def test_rest_of_other_stitches_is_refused(tmp_path):
                 "-o", str(tmp_path / "out"))
     assert p.returncode == 2
     assert p.stderr.strip().count("\n") == 0 and "give the same" in p.stderr
+
+
+def test_relax_options_take_effect(tmp_path):
+    """-knit_loop_length sets the yarn a stitch (the relaxed knit's within
+    its strain), -knit_template_scale the start (the series' first frame is
+    the template scaled to the loop length and stretched 1.01 along the
+    courses), -knit_rest_speed when it
+    stops (its residual speed below it)."""
+    out = tmp_path / "relax"
+    p = knitfem("relax", "-knit_rows", "3", "-knit_cols", "3", "-knit_yarn_contact",
+                "off", "-knit_loop_length", "0.017", "-knit_template_scale",
+                "1.01,1,1", "-knit_rest_speed", "1e-4", "-o", str(out))
+    assert p.returncode == 0, p.stderr
+    rec = json.loads((out / "summary.json").read_text())
+    assert rec["loop_length_m"] == pytest.approx(0.017, rel=3e-3)
+    assert rec["template_scale"] == [1.01, 1.0, 1.0]
+    assert rec["residual_speed_m_s"] < 1e-4
+    series = meshio.xdmf.TimeSeriesReader(str(out / "relaxed.xdmf"))
+    series.read_points_cells()
+    first = series.read_data(0)[1]["position"]
+    template = jersey_fabric(Jersey(3, 3)).curves(jersey_fabric(Jersey(3, 3)).X)
+    width = np.ptp(template.samples(8).points[:, 0])
+    # the start: the template scaled to the loop length, then along the courses
+    assert np.ptp(first[:, 0]) == pytest.approx(1.01 * 17 / 16.8172 * width, rel=1e-3)

@@ -70,7 +70,7 @@ def test_values_in_place_keep_one_analysis(model, options):
         jacobian(model, scale=scale).copy(A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         saddle.update()
         _, res = solve(saddle, ksp)
-        assert res < 1e-6                 # K's condition number is ~1e10
+        assert res < 3e-7    # measured 2.8e-8 (K's condition number is ~1e10)
     assert sym.getPerfInfo()["count"] - n0 == 1
     assert num.getPerfInfo()["count"] - m0 == 3
     saddle.destroy()
@@ -119,7 +119,7 @@ def test_regularized_preconditioner_solves_K(model, options):
     assert r1 < 1e-6 and r2 < 1e-8
     assert k2.getType() == "gmres" and k2.getIterationNumber() <= 8
     z2.axpy(-1.0, z1)
-    assert z2.norm() <= 1e-8 * z1.norm()
+    assert z2.norm() <= 1e-10 * z1.norm()  # measured 9.2e-12
     for s in (direct, reg):
         s.destroy()
 
@@ -194,7 +194,7 @@ def test_workspace_retried(model, options):
         _, res = solve(saddle, ksp)
     finally:
         progress.listen(before)
-    assert res < 1e-6
+    assert res < 2e-11  # measured 1.1e-12
     assert PETSc.Options().getInt("t_ws_mat_mumps_icntl_14") >= 100
     assert WORKSPACE_RAISED["t_ws_"] >= 100         # said at the run's end
     assert heard and all(always for _, always in heard)     # and at once
@@ -240,12 +240,12 @@ def test_course_schwarz_solves_K(model, options, courses, overlap):
     assert ksp.getPC().getType() == "asm"
     z1, r1 = solve(direct, saddle_ksp(direct, "t_asm_direct_"))
     z2, r2 = solve(schwarz, ksp)
-    assert r2 < 1e-10
+    assert r2 < 2e-11  # measured 1.5e-12
     if COMM.size == 1 and courses == 5:
         assert ksp.getIterationNumber() <= 2           # round-off of K (κ ~ 1e10)
     else:
         assert 1 < ksp.getIterationNumber() < 300        # random b, rtol 1e-12
     z2.axpy(-1.0, z1)
-    assert z2.norm() <= 1e-6 * z1.norm()
+    assert z2.norm() <= 1e-10 * z1.norm()  # measured 9.2e-12
     for s in (direct, schwarz):
         s.destroy()

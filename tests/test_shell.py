@@ -79,7 +79,7 @@ def test_forces_derive_from_the_energy(shell):
     d.axpy(-1.0, red.rest_state())
     h = 1e-9
     fd = (red.elastic_energy(shifted(a, d, h)) - red.elastic_energy(shifted(a, d, -h))) / (2 * h)
-    assert np.isclose(-forces(red, a).dot(d), fd, rtol=1e-6)
+    assert np.isclose(-forces(red, a).dot(d), fd, rtol=8e-9, atol=0)  # measured 7.8e-10
 
 
 @pytest.mark.parametrize("mip", [False, True])
@@ -106,7 +106,7 @@ def test_rigid_motions_cost_nothing(shell):
     a = red.rest_state()
     P = a.getArray().reshape(-1, 3)
     P[:] = P @ rotation([1, 2, 3], 0.7).T + [0.1, -0.2, 0.3]
-    assert abs(red.elastic_energy(a)) < 1e-24
+    assert abs(red.elastic_energy(a)) < 5e-28  # measured 4e-29
     EA = red.material.EA                          # round-off: EA × 1e-14 strain
     assert forces(red, a).norm(PETSc.NormType.INFINITY) < 1e-14 * EA
 
@@ -142,7 +142,7 @@ def test_shearing_a_stitch_keeps_its_yarn_length(pair):
     stitch = red.shell
     element = ShellStretch(red.full, red.embedding, window=1)
     assert max(stitch.energy(flat), element.energy(flat)) < 1e-30
-    assert stitch.energy(sheared) < 1e-3 * element.energy(sheared)
+    assert stitch.energy(sheared) < 2e-5 * element.energy(sheared)  # measured 1.2e-6
 
 
 def test_a_turned_problem_gives_turned_forces_and_the_same_energy(shell):
@@ -154,7 +154,8 @@ def test_a_turned_problem_gives_turned_forces_and_the_same_energy(shell):
     b = a.copy()
     P = b.getArray().reshape(-1, 3)
     P[:] = P @ R.T + [0.05, 0.2, -0.1]
-    assert np.isclose(red.elastic_energy(b), red.elastic_energy(a), rtol=1e-9)
+    # measured 1.8e-12
+    assert np.isclose(red.elastic_energy(b), red.elastic_energy(a), rtol=2e-11, atol=0)
     Qa = forces(red, a).getArray().reshape(-1, 3)
     Qb = forces(red, b).getArray().reshape(-1, 3)
     assert np.allclose(Qb, Qa @ R.T, atol=1e-9 * np.abs(Qa).max())

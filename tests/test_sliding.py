@@ -200,3 +200,20 @@ def test_parallel_equals_serial():
     par.destroy()
     ser.destroy()
 
+
+
+def test_slide_margin_sets_the_windows():
+    """-knit_slide_margin m: windows of 4 + 2m control points a side."""
+    from knitfem.cli.commands import build_system
+    from knitfem.cli.options import KnitOptions
+
+    opts = PETSc.Options()
+    opts.setValue("-knit_contacts", "sliding")
+    opts.setValue("-knit_slide_margin", "3")
+    try:
+        m = build_system(PETSc.COMM_WORLD, KnitOptions(), jersey(3, 4), Material())
+    finally:
+        opts.delValue("-knit_contacts")
+        opts.delValue("-knit_slide_margin")
+    assert m.constraints.local.width == 4 + 2 * 3
+    m.destroy()

@@ -25,7 +25,8 @@ def test_power_iteration_finds_the_largest_eigenvalue_of_the_pencil():
     K = to_scipy(model.stiffness(model.rest_state())).toarray()
     M = to_scipy(model.M).toarray()
     lam = sl.eigh(K, M, eigvals_only=True)[-1]
-    assert stable_step(model) == pytest.approx(2 / np.sqrt(lam), rel=1e-3)
+    # measured 8.9e-6
+    assert stable_step(model) == pytest.approx(2 / np.sqrt(lam), rel=9e-5)
 
 
 @pytest.mark.parametrize("fraction,stable", [(0.95, True), (1.05, False)])

@@ -76,9 +76,9 @@ def test_newton_ends_quadratically_on_the_issue_cases(case):
     f, du = np.array(norms).T
     k = np.nonzero(du > 1e-8 * L)[0][-1]
     assert du[k + 1] <= 1e4 * du[k] ** 2 / L
-    assert du[k + 1] <= 1e-2 * du[k]
+    assert du[k + 1] <= 0.005 * du[k]  # measured 0.0004
     assert f[k + 1] <= 10 * f[-1] and f[k - 1] > 100 * f[-1]
-    assert solver.sigma <= 1e-6 * solver.sigma0         # Newton's own steps
+    assert solver.sigma <= 2e-7 * solver.sigma0  # Newton's own steps: 1.8e-8
 
 
 def test_small_deflection_cantilever_tip():
@@ -86,7 +86,8 @@ def test_small_deflection_cantilever_tip():
     EI, rho = 1.962e-4, 1e-3
     _, P, _, _ = cantilever(EI, rho)
     tip = bspline.curve_points(P, np.array([40.0]))[0]
-    assert -tip[1] == pytest.approx(rho * G * L**4 / (8 * EI), rel=0.01)
+    # measured 3.1e-5
+    assert -tip[1] == pytest.approx(rho * G * L**4 / (8 * EI), rel=4e-4)
 
 
 def test_catenary_sag():
@@ -120,8 +121,8 @@ def test_large_deflection_cantilever_against_elastica():
     assert drop > 0.3 and pull > 0.05                  # far from linear
     _, P, _, _ = cantilever(rho * G * L**3 / alpha, rho)
     tip = bspline.curve_points(P, np.array([40.0]))[0]
-    assert -tip[1] / L == pytest.approx(drop, rel=0.02)
-    assert (L - tip[0]) / L == pytest.approx(pull, rel=0.02)
+    assert -tip[1] / L == pytest.approx(drop, rel=4e-4)  # measured 3.5e-5
+    assert (L - tip[0]) / L == pytest.approx(pull, rel=6e-4)  # measured 5.4e-5
 
 
 def test_hanging_knit_mechanism_matches_damped_dynamics():
@@ -136,11 +137,11 @@ def test_hanging_knit_mechanism_matches_damped_dynamics():
     X = fab.X
     sag = X[..., 1].min() - Pd[..., 1].min()
     assert sag > 1e-5                                            # it did sag
-    assert abs(P[..., 1].min() - Pd[..., 1].min()) < 0.02 * sag
-    assert np.abs(P - Pd).max() < 0.02 * np.abs(Pd - X).max()
+    assert abs(P[..., 1].min() - Pd[..., 1].min()) < 2e-13 * sag  # measured 1.2e-14
+    assert np.abs(P - Pd).max() < 4e-12 * np.abs(Pd - X).max()  # measured 3.1e-13
     # on null(C), K has zero modes at rest and is positive definite at the drape
     rest = np.linalg.eigvalsh(reduced_stiffness(model, model.rest_state()))
-    assert abs(rest[0]) < 1e-9 * rest[-1]
+    assert abs(rest[0]) < 6e-13 * rest[-1]  # measured 5.5e-14
     xs = model.rest_state()
     lo, hi = xs.getOwnershipRange()
     xs.getArray()[:] = P.ravel()[lo:hi]

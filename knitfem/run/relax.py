@@ -53,15 +53,16 @@ def yarn_lengths(fabric, P=None, nq=8):
 
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
-    ``length`` a stitch (default: the template's), started from the template
-    scaled by ``scale`` along the fabric's course, wale and thickness
-    directions about its centroid; crossings held 2r apart."""
+    ``length`` a stitch (default: the template's): its rest X the template
+    scaled uniformly to that length, its start X scaled by ``scale`` along
+    the fabric's course, wale and thickness directions about its centroid;
+    crossings held 2r apart."""
     ell = loop_length(yarn_lengths(fabric), np.full(fabric.nyarn, jersey.cols))
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
+    X = (fabric.X - centre) * ((length or ell) / ell) + centre
     S = F @ np.diag(scale) @ F.T
-    return replace(fabric, X=(fabric.X - centre) * ((length or ell) / ell) + centre,
-                   start_X=(fabric.X - centre) @ S.T + centre, natural=True,
+    return replace(fabric, X=X, start_X=(X - centre) @ S.T + centre, natural=True,
                    separation=2 * fabric.radius)
 
 
