@@ -101,8 +101,8 @@ class Chart:
         return f"Chart({self.text()!r})"
 
     def __str__(self):
-        """The chart as knitters draw it: the bottom course last."""
-        return "\n".join(reversed(self.text()))
+        """The chart as a chart file writes it: the bottom course first."""
+        return "\n".join(self.text())
 
 
 def named_chart(name, rows, cols):
