@@ -223,7 +223,7 @@ def relax(comm):
             rec.update(knit_measures(jersey, fabric, P), residual_speed_m_s=speed,
                        settled=bool(speed < rest), rows=jersey.rows,
                        cols=jersey.cols, shape=jersey.knit,
-                       template_scale=list(scale))
+                       chart=jersey.chart.text(), template_scale=list(scale))
             RelaxedKnit(jersey.rows, jersey.cols, jersey.knit, jersey.radius,
                         fabric.X, P, fabric.contacts, fabric.separation,
                         rec["loop_length_m"]).save(os.path.join(out.path,
