@@ -112,6 +112,7 @@ def test_a_tuck_is_held_with_the_loop_and_knitted_off_with_it():
     above = graph.loops[graph.courses[3].loops[1]]
     below = graph.loops[graph.courses[1].loops[1]]
     assert above.parents == (below.id, tuck.id)
+    assert graph.drawing() == ["KKK", "KTK", "KXK"]
     with pytest.raises(KnitError, match=r"^t\.k:13: a tuck at f1 in knitted course 1"):
         graph.chart()
 
@@ -124,6 +125,7 @@ def test_a_miss_floats_the_yarn_past_a_held_loop():
     # the loop above the float is pulled through the loop two courses down
     above = graph.loops[graph.courses[3].loops[1]]
     assert above.parents == (graph.courses[1].loops[1],)
+    assert graph.drawing() == ["KKK", "K-K", "KKK"]
     with pytest.raises(KnitError, match="a float"):
         graph.chart()
 
@@ -138,7 +140,9 @@ def test_a_decrease_by_transfer_with_racking_and_a_yarn_over():
     assert top["f3"].parents == (first["f3"], first["f2"])     # two parents
     assert top["f2"].parents == ()                             # the yarn-over
     assert top["f1"].parents == (first["f1"],)
-    with pytest.raises(KnitError, match=r"a decrease at f3"):
+    assert graph.drawing() == ["KKKKK", "KKOXK"]
+    with pytest.raises(KnitError, match=r"t\.k:22: a yarn-over at f2 in knitted "
+                       "course 1"):
         graph.chart()
 
 

@@ -131,13 +131,17 @@ class KnitGraph:
         return [c for c in self.courses
                 if any(self.loops[i].parents for i in c.loops)]
 
-    def chart(self):
-        """The knitted courses as a chart of knits and purls.
+    def drawing(self):
+        """The knitted courses, one string a course (bottom first), one
+        symbol a wale position (left to right): ``K``/``P`` a knit/purl,
+        ``T`` a tuck, ``-`` a float, ``O`` a yarn-over (a knit through no
+        loop), ``X`` a decrease (through two or more), ``*`` several loops at
+        one wale, ``.`` none."""
+        return ["".join(row) for row in self.cells()[0]]
 
-        Raises ``KnitError`` where the knit is not a plain grid: a tuck, a
-        float, a decrease or a yarn-over, two loops at one wale position of
-        a course, or a course missing a wale.
-        """
+    def cells(self):
+        """The drawing's symbols (courses, wales) and, for each, the first
+        loop drawn there (None where there is none)."""
         courses = self.knitted()
         if not courses:
             raise KnitError(f"{self.source}: no knitted course (only cast-on "
@@ -145,34 +149,43 @@ class KnitGraph:
         loops = [[self.loops[i] for i in c.loops] for c in courses]
         wales = sorted({lp.position for course in loops for lp in course})
         column = {x: j for j, x in enumerate(wales)}
-        grid = np.full((len(loops), len(wales)), -1)
+        grid = np.full((len(loops), len(wales)), ".")
+        first = np.full(grid.shape, None, dtype=object)
         for r, course in enumerate(loops):
             for lp in course:
                 j = column[lp.position]
-                what = irregular(lp, grid[r, j] >= 0)
-                if what:
-                    raise KnitError(f"{self.source}:{lp.line}: {what} at "
-                                    f"{lp.needle} in knitted course {r}; only a "
-                                    "plain grid of knits and purls makes a chart")
-                grid[r, j] = lp.stitch == "P"
-        if (grid < 0).any():
-            r, j = np.argwhere(grid < 0)[0]
-            raise KnitError(f"{self.source}: knitted course {r} has no stitch at "
-                            f"wale position {wales[j]:g}; only a plain grid of "
+                grid[r, j] = symbol(lp) if first[r, j] is None else "*"
+                first[r, j] = first[r, j] or lp
+        return grid, first, wales
+
+    def chart(self):
+        """The knitted courses as a chart of knits and purls.
+
+        Raises ``KnitError`` where the knit is not a plain grid (a symbol of
+        ``drawing`` other than K and P), naming the first such place.
+        """
+        grid, first, wales = self.cells()
+        odd = np.argwhere((grid != "K") & (grid != "P"))
+        if len(odd):
+            r, j = odd[0]
+            lp = first[r, j]
+            where = (f"{self.source}: no stitch at wale position {wales[j]:g}"
+                     if lp is None else f"{self.source}:{lp.line}: "
+                     f"{SYMBOLS[grid[r, j]]} at {lp.needle}")
+            raise KnitError(f"{where} in knitted course {r}; only a plain grid of "
                             "knits and purls makes a chart")
-        return Chart(grid == 1)
+        return Chart(grid == "P")
 
 
-def irregular(loop, taken):
-    """What keeps ``loop`` out of a plain chart (None for a plain knit or
-    purl); ``taken``: its course has a stitch at its wale already."""
-    if loop.stitch == "T":
-        return "a tuck"
-    if loop.stitch == "M":
-        return "a float (miss)"
-    if len(loop.parents) != 1:
-        return "a decrease" if loop.parents else "a yarn-over"
-    return "a second loop at one wale" if taken else None
+SYMBOLS = {"T": "a tuck", "-": "a float (miss)", "O": "a yarn-over",
+           "X": "a decrease", "*": "several loops at one wale"}
+
+
+def symbol(loop):
+    """The drawing's symbol of one loop."""
+    if loop.stitch in "TM":
+        return "T" if loop.stitch == "T" else "-"
+    return loop.stitch if len(loop.parents) == 1 else "X" if loop.parents else "O"
 
 
 class Machine:
