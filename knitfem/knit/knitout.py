@@ -10,16 +10,17 @@ the ``KnitGraph`` it knits: every loop with the loops it was pulled through
 (its parents), the yarn of each carrier as one sequence of loops, and, where
 the knit is a plain grid of knits and purls, its ``Chart``.
 
-Why our own reader and not PyPI's ``knitout-interpreter``: the machine model
-needed here is small (two beds of needle → loops, a racking, the carriers in
-action; a dozen operations), while the interpreter brings nine packages
-(knit-graphs, virtual-knitting-machine, parglare, networkx 3.6 over Debian's
-2.8 that the rest of the system sees, click, svgwrite, webcolors, ...) at
-0.x versions whose graphs we would still translate into loops, courses and
-wale positions of our own. It is also stricter than the specification asks
-of a reader (which is to warn about unknown headers and extensions and go
-on). Our reader has no dependency beyond numpy and reports every bad line
-as one ``KnitError`` naming the file and the line.
+Why our own reader and not PyPI's ``knitout-interpreter`` (which would
+leave Debian's numpy alone): the machine model needed here is small (two
+beds of needle → loops, a racking, the carriers in action; a dozen
+operations), while the interpreter 0.1.8 brings eight more packages to pin
+(knit-graphs 0.1.4, virtual-knitting-machine 0.0.31, parglare, networkx 3.6
+over the Debian 2.8 the rest of the system sees, click, svgwrite, webcolors,
+importlib_resources), young ones whose graphs we would still translate into
+loops, courses and wale positions of our own. Our reader has no dependency
+beyond numpy, follows the specification's reading rules (unknown headers
+and extensions warned about and ignored), and reports every bad line as one
+``KnitError`` naming the file and the line.
 
 What the graph records (all as seen from the technical face, the front bed's
 side): a loop's stitch is ``K`` for a knit or split on the front bed, ``P``
