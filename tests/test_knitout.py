@@ -155,6 +155,15 @@ def test_split_knits_a_loop_and_moves_the_old_ones_across():
     assert graph.held["b1"] == new.parents and graph.held["f1"] == (new.id,)
 
 
+def test_drop_amiss_and_an_empty_split_hold_what_the_spec_says():
+    n = range(3)
+    graph = read(program(caston(n), course(n), "amiss f1", "drop f0",
+                         "split + f2 b2", "outhook 3"))
+    top = graph.courses[1].loops
+    assert graph.held == {"f1": (top[1],), "b2": (top[2],)}
+    assert len(graph.loops) == 6                     # amiss and drop make none
+
+
 def test_unknown_headers_and_extensions_are_warned_once_and_ignored():
     header = HEADER + [";;X-Presser: on", ";;Frobnication: 3", ";;X-Presser: off"]
     text = program(caston(range(2)), "x-presser-mode auto", course(range(2)),

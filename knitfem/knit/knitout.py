@@ -363,7 +363,7 @@ def side(needle):
 def read_knitout(path):
     """The knit graph of the knitout program in file ``path``."""
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:
             text = f.read()
     except (OSError, UnicodeDecodeError) as err:
         raise KnitError(f"{path}: cannot read the knitout program ({err})") from None
