@@ -88,10 +88,10 @@ def test_pattern_writes_geometry_and_picture(tmp_path):
     ("data/rib1x1_10x12.k", ["KPKPKPKPKP"] * 12),
 ])
 def test_pattern_prints_the_chart_it_read(tmp_path, spec, chart):
+    size = ["-knit_rows", "3", "-knit_cols", "4"]
     if spec.endswith(".k"):
-        spec = os.path.join(os.path.dirname(__file__), spec)
-    p = knitfem("pattern", "-knit_pattern", spec, "-knit_rows", "3", "-knit_cols",
-                "4", "-o", str(tmp_path))
+        spec, size = os.path.join(os.path.dirname(__file__), spec), []
+    p = knitfem("pattern", "-knit_pattern", spec, *size, "-o", str(tmp_path))
     assert p.returncode == 0, p.stderr
     lines = [ln for ln in p.stdout.splitlines() if not ln.startswith("#")]
     assert lines == chart and not os.listdir(tmp_path)
@@ -103,6 +103,9 @@ def test_a_chart_file_sizes_the_jersey(tmp_path):
     p = knitfem("pattern", "-knit_pattern", str(path), "-o", str(tmp_path))
     assert p.returncode == 0, p.stderr
     assert (tmp_path / "jersey_2x5.vtu").exists()
+    p = knitfem("pattern", "-knit_pattern", str(path), "-knit_cols", "4")
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "-knit_cols 4 contradicts" in p.stderr and "chart has 5" in p.stderr
 
 
 @pytest.mark.parametrize("command", ["relax", "run"])

@@ -27,6 +27,10 @@ def jersey_from_options(opts, rows=7, cols=7, any_pattern=False):
         chart = chart_from_spec(spec, r, c)
     except KnitError as err:
         raise KnitError(f"-knit_pattern {err}") from None
+    for name, given, size in (("rows", r, chart.rows), ("cols", c, chart.cols)):
+        if opts.db.hasName(name) and given != size:
+            raise KnitError(f"-knit_{name} {given} contradicts -knit_pattern "
+                            f"{spec}, whose chart has {size}; leave -knit_{name} out")
     if not (chart.jersey or any_pattern):
         raise KnitError(f"-knit_pattern {spec}: its yarn geometry (purl stitches) "
                         "is not built yet, only jersey's; knitfem pattern "
