@@ -30,6 +30,10 @@ def test_text_round_trips_and_equality():
     assert chart != Chart.from_text(["KKPP", "PPKK", "KPKK"])
     assert str(chart).splitlines() == lines            # a chart file's lines
     assert not chart.purl.flags.writeable
+    with pytest.raises(ValueError):
+        Chart.from_text(["KPX"])
+    with pytest.raises(ValueError):
+        Chart.from_text(["KP", "K"])                  # ragged
 
 
 def test_a_chart_file_skips_comments_and_blank_lines(tmp_path):

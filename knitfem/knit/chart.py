@@ -64,6 +64,8 @@ class Chart:
     @classmethod
     def from_text(cls, lines):
         """The chart of strings of ``K`` and ``P``, the bottom course first."""
+        if set("".join(lines)) - set(STITCH):
+            raise ValueError(f"a chart's courses are K and P only, not {lines!r}")
         return cls([[c == "P" for c in line] for line in lines])
 
     @property
