@@ -120,6 +120,47 @@ def test_pattern_writes_geometry_and_picture(tmp_path):
     assert (tmp_path / "jersey_3x3.png").stat().st_size > 10000
 
 
+@pytest.mark.parametrize("spec, chart", [
+    ("seed", ["KPKP", "PKPK", "KPKP"]),
+    ("garter", ["KKKK", "PPPP", "KKKK"]),
+    ("data/rib1x1_10x12.k", ["KPKPKPKPKP"] * 12),
+])
+def test_pattern_prints_the_chart_it_read(tmp_path, spec, chart):
+    size = ["-knit_rows", "3", "-knit_cols", "4"]
+    if spec.endswith(".k"):
+        spec, size = os.path.join(os.path.dirname(__file__), spec), []
+    p = knitfem("pattern", "-knit_pattern", spec, *size, "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in p.stdout.splitlines() if not ln.startswith("#")]
+    assert lines == chart and not os.listdir(tmp_path)
+
+
+def test_a_chart_file_sizes_the_jersey(tmp_path):
+    path = tmp_path / "plain.txt"
+    path.write_text("# plain\nKKKKK\nKKKKK\n")
+    p = knitfem("pattern", "-knit_pattern", str(path), "-o", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "jersey_2x5.vtu").exists()
+    p = knitfem("pattern", "-knit_pattern", str(path), "-knit_cols", "4")
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "-knit_cols 4 contradicts" in p.stderr and "chart has 5" in p.stderr
+
+
+@pytest.mark.parametrize("command", ["relax", "run"])
+def test_patterns_without_yarn_geometry_are_a_usage_error(tmp_path, command):
+    p = knitfem(command, "-knit_pattern", "rib1x1", "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "-knit_pattern rib1x1: its yarn geometry" in p.stderr
+
+
+def test_a_bad_chart_line_is_a_usage_error_naming_it(tmp_path):
+    path = tmp_path / "bad.txt"
+    path.write_text("KPKP\nKPXP\n")
+    p = knitfem("pattern", "-knit_pattern", str(path), "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert f"-knit_pattern {path}:2: 'X'" in p.stderr
+
+
 def test_deform_metrics(tmp_path):
     def metrics(amount):
         p = knitfem("deform", "-knit_mode", "traction", "-knit_amount", amount,

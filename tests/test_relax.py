@@ -67,6 +67,7 @@ def test_relax_then_a_free_run_stays_put(tmp_path):
     assert p.returncode == 0, p.stderr
     rec = json.loads((out / "summary.json").read_text())
     assert rec["status"] == "completed" and rec["settled"]
+    assert rec["chart"] == ["KKK"] * 3
     assert rec["loop_length_m"] == pytest.approx(16.82e-3, rel=1e-3)
     for key in ("course_spacing_m", "wale_spacing_m", "k_c", "k_w", "k_s"):
         assert rec[key] > 0

@@ -8,22 +8,42 @@ import numpy as np
 from petsc4py import PETSc
 
 from knitfem.cli.options import KnitError, KnitOptions
+from knitfem.knit.chart import chart_from_spec
 from knitfem.knit.pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric, min_yarn_distance
 
 __all__ = ["dofs", "pattern", "relax", "run", "deform"]
 
 
-def jersey_from_options(opts, rows=7, cols=7):
-    """The jersey declared by -knit_rows, -knit_cols, -knit_radius and
-    -knit_shape."""
+def jersey_from_options(opts, rows=7, cols=7, any_pattern=False):
+    """The jersey declared by -knit_rows, -knit_cols, -knit_pattern (its
+    ``chart``), -knit_radius and -knit_shape; a pattern other than jersey is
+    refused unless ``any_pattern`` (its yarn geometry is not built yet)."""
     r = opts.getInt("rows", rows, "courses (rows) of stitches; one yarn each", 1)
     c = opts.getInt("cols", cols, "stitches (columns) a course (around a tube)", 1)
+    spec = opts.getString("pattern", "jersey", "stitch pattern: jersey|rib1x1|"
+                          "rib2x2|garter|seed over -knit_rows x -knit_cols, a chart "
+                          "file CHART.txt (a course a line, bottom first, K or P "
+                          "read from the face) or a knitout program FILE.k")
+    try:
+        chart = chart_from_spec(spec, r, c)
+    except KnitError as err:
+        raise KnitError(f"-knit_pattern {err}") from None
+    for name, given, size in (("rows", r, chart.rows), ("cols", c, chart.cols)):
+        if opts.db.hasName(name) and given != size:
+            raise KnitError(f"-knit_{name} {given} contradicts -knit_pattern "
+                            f"{spec}, whose chart has {size}; leave -knit_{name} out")
+    if not (chart.jersey or any_pattern):
+        raise KnitError(f"-knit_pattern {spec}: its yarn geometry (purl stitches) "
+                        "is not built yet, only jersey's; knitfem pattern "
+                        f"-knit_pattern {spec} prints its chart")
     radius = opts.getReal("radius", 5e-4, "yarn radius [m]", positive=True)
     knit = opts.getChoice("shape", "flat", SHAPES, "a flat swatch, or a tube knitted "
                           "in the round (every course closed on itself)")
-    if knit == "tube" and c < 3:
-        raise KnitError(f"-knit_cols {c}: a tube needs at least 3 stitches around")
-    return Jersey(r, c, radius, LoopShape(), knit)
+    if knit == "tube" and chart.cols < 3:
+        raise KnitError(f"-knit_cols {chart.cols}: a tube needs at least 3 stitches around")
+    jersey = Jersey(chart.rows, chart.cols, radius, LoopShape(), knit)
+    jersey.chart = chart
+    return jersey
 
 
 def rest_from_options(opts, jersey):
@@ -112,13 +132,19 @@ def dofs(comm):
 
 
 def pattern(comm):
-    """Write a jersey's (or a tube's) centrelines (VTU) and a PNG picture."""
+    """Print the pattern's chart; write a jersey's (or a tube's) centrelines
+    (VTU) and a PNG picture."""
     from knitfem import io
 
     opts = KnitOptions()
-    jersey = jersey_from_options(opts)
+    jersey = jersey_from_options(opts, any_pattern=True)
     out = opts.getOutput("out/pattern")
     if opts.finish("knitfem pattern"):
+        return
+    PETSc.Sys.Print(f"# {jersey.rows} courses of {jersey.cols} stitches, the "
+                    f"bottom course first, read from the face\n{jersey.chart}")
+    if not jersey.chart.jersey:
+        PETSc.Sys.Print("# its yarn geometry is not built yet: no geometry written")
         return
     output_dir(out)
     if comm.rank:
@@ -203,7 +229,7 @@ def relax(comm):
             rec.update(knit_measures(jersey, fabric, P), residual_speed_m_s=speed,
                        settled=bool(speed < rest), rows=jersey.rows,
                        cols=jersey.cols, shape=jersey.knit,
-                       template_scale=list(scale))
+                       chart=jersey.chart.text(), template_scale=list(scale))
             RelaxedKnit(jersey.rows, jersey.cols, jersey.knit, jersey.radius,
                         fabric.X, P, fabric.contacts, fabric.separation,
                         rec["loop_length_m"]).save(os.path.join(out.path,
