@@ -151,6 +151,7 @@ class SymplecticEuler:
 
     def step(self, t, x, v, t_stop=None):
         s, h = self.system, self.control.propose(t, t_stop)[0]
+        s.move_bodies(t, t)                     # forces where the bodies are now
         s.forces(x, v, self.Q)
         s.M.mult(v, self.Mv)
         self.Mv.axpy(h, self.Q)
@@ -384,6 +385,7 @@ class NewtonStepper:
         self.xe and ε̇_{n+1} in self.v; raises SimulationError on failure."""
         s = self.system
         self.h = h
+        s.move_bodies(self.t_n, self.t_n + h)   # bodies where they are at its end
         self.coefficients(h)
         c = self.control
         if c.adaptive:
@@ -429,6 +431,7 @@ class NewtonStepper:
 
     def _commit(self, x, v, h):
         self.steps += 1
+        self.t_n += h
         self.accepted(h)
         if self.control.adaptive:
             self.history.push(self.xe.getArray(readonly=True), h)
@@ -448,7 +451,8 @@ class NewtonStepper:
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
         stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
-        self.system.begin_step(x)               # lagged quantities (friction)
+        self.system.begin_step(x, t)            # lagged quantities (friction)
+        self.t_n = t                            # where the next (part) step starts
         c = self.control
         while True:
             h, landed = c.propose(t, t_stop)

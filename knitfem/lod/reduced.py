@@ -221,11 +221,14 @@ class EmbeddedModel:
         return self.full.tunnelled(self.full_state(q0, self.eps),
                                    self.full_state(q1, self.deps))
 
-    def begin_step(self, q):
-        """A step starts from q: the full model's lagged friction at Γ q (ε
-        is formed only when there are bodies)."""
+    def begin_step(self, q, t=None):
+        """A step starts from q at time t: the full model's lagged friction
+        at Γ q (ε is formed only when there are bodies)."""
         if self.full.barrier is not None:
-            self.full.begin_step(self.full_state(q, self.eps))
+            self.full.begin_step(self.full_state(q, self.eps), t)
+
+    def move_bodies(self, t0, t1):
+        self.full.move_bodies(t0, t1)
 
     def yarn_move(self, dq):
         """max |Γ δq| for the local part ``dq`` (array) of an update δq: how far

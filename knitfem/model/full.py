@@ -178,11 +178,17 @@ class FullModel:
         return f.open_splines(np.concatenate(parts).reshape(f.nyarn, f.ncp, 3))
 
     # -- mechanics -----------------------------------------------------------
-    def begin_step(self, x):
-        """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``)."""
+    def begin_step(self, x, t=None):
+        """A step starts from the state x at time t: friction's normal forces
+        and reference points are taken there (lagged, ``colliders``)."""
         if self.barrier is not None:
-            self.barrier.lag(self.yarn_points(x))
+            self.barrier.lag(self.yarn_points(x), t)
+
+    def move_bodies(self, t0, t1):
+        """The step (or a part of it) runs from t0 to t1: moving bodies go
+        where they are at t1 (``colliders.Barrier.step_to``)."""
+        if self.barrier is not None:
+            self.barrier.step_to(t0, t1)
 
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier) (collective)."""
