@@ -55,9 +55,10 @@ def _default(prefix, name, value):
         opts.setValue(prefix + name, value)
 
 
-def step_convergence(saddle, step_tol, system):
-    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update
-    that moves no yarn control point by more than ``step_tol()``
+def step_convergence(saddle, step_tol, system, limited=lambda: False):
+    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update,
+    taken in full (not ``limited()`` by the system's step limit), that moves
+    no yarn control point by more than ``step_tol()``
     (``system.yarn_move``: the coordinates' update through ε = Γ q, not the
     multipliers'). The residual of stiff yarns carries round-off far above
     any absolute tolerance on |F|; and volume control points that carry
@@ -79,7 +80,7 @@ def step_convergence(saddle, step_tol, system):
             return R.ITERATING
         if fnorm <= rtol * test.f0:
             return R.CONVERGED_FNORM_RELATIVE
-        if ynorm <= step_tol():
+        if ynorm <= step_tol() and not limited():
             return R.CONVERGED_SNORM_RELATIVE
         if it >= max_it:
             return R.DIVERGED_MAX_IT
@@ -268,12 +269,16 @@ class NewtonStepper:
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
         self.snes.setFunction(self._residual, self.F)
+        if getattr(system, "step_limit", None) is not None:
+            self.snes.setLineSearchPreCheck(self._limit)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
+        self.limited = False                # the last update was shortened
         self.snes.setConvergenceTest(step_convergence(
-            self.saddle, lambda: self.newton_tol / self.kappa, system))
+            self.saddle, lambda: self.newton_tol / self.kappa, system,
+            lambda: self.limited))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         self.ksp = saddle_ksp(self.saddle, prefix)
@@ -284,6 +289,7 @@ class NewtonStepper:
         self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
         self.vhat, self.xhat, self.e = new(), new(), new()
         self.xref = new()                   # where the last tangent was formed
+        self.dxe = new()                    # a Newton update's move of ε_{n+1}
         self.Q, self.Mv, self.tmp = new(), new(), new()
         self.mu, self.Cx = system.C.createVecLeft(), system.C.createVecLeft()
         self.lam = system.C.createVecLeft()          # −λ of the last step
@@ -364,6 +370,16 @@ class NewtonStepper:
             fu += self.tmp.getArray(readonly=True)
             s.constraint_residual(self.xe, self.Cx)
             fl[:] = self.Cx.getArray(readonly=True) / self.kappa
+
+    def _limit(self, z, y):
+        """Newton's update −y of z shortened to the system's ``step_limit``
+        on the end point's move −κ y_u (a yarn stopped at a body's surface)."""
+        self._unpack(z)
+        self.dxe.getArray()[:] = -self.kappa * self.saddle.split(y)[0]
+        tau = self.system.step_limit(self.xe, self.dxe)
+        self.limited = tau < 1.0
+        if self.limited:
+            y.scale(tau)
 
     def _jacobian(self, snes, z, J, P):
         s = self.system

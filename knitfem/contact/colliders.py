@@ -431,6 +431,32 @@ class Barrier:
             far = max(far, float(np.abs(x @ (R1 - R0).T + s1 - s0).max(initial=0)))
         return far
 
+    def step_limit(self, x, dx, iterations=30):
+        """The largest τ ≤ 1 such that the update τ dx of the yarn points x
+        takes no quadrature point below δ = min(δ(x), 0) − ĥ (local): a
+        Newton update stops about where a yarn surface meets a body, in
+        the barrier whose stiffness the next iteration knows, rather than
+        far inside it (a step filter, as in IPC). Along a straight path φ is convex for a
+        sphere, a capsule or a plane, so the first crossing of each point is
+        found by bisection."""
+        p, q = self.el.points(x).reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
+
+        def delta(pts):
+            return np.min([body.phi(pts) for body in self.bodies], axis=0) - self.radius
+
+        bound = np.minimum(delta(p), 0.0) - self.gap
+        out = np.flatnonzero(delta(p + q) < bound)
+        if not len(out):
+            return 1.0
+        p, q, bound = p[out], q[out], bound[out]
+        lo, hi = np.zeros(len(out)), np.ones(len(out))
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            below = delta(p + mid[:, None] * q) < bound
+            hi = np.where(below, mid, hi)
+            lo = np.where(below, lo, mid)
+        return float(lo.min())
+
     def min_distance(self, x):
         """Smallest δ (local; +inf without elements)."""
         delta = self.surface_distance(x)[0]

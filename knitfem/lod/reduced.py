@@ -221,6 +221,13 @@ class EmbeddedModel:
         return self.full.tunnelled(self.full_state(q0, self.eps),
                                    self.full_state(q1, self.deps))
 
+    def step_limit(self, q, dq):
+        """The full model's limit on the update Γ dq from Γ q (collective)."""
+        if self.full.barrier is None:
+            return 1.0
+        return self.full.step_limit(self.full_state(q, self.eps),
+                                    self.full_state(dq, self.deps))
+
     def begin_step(self, q, t=None):
         """A step starts from q at time t: the full model's lagged friction
         at Γ q (ε is formed only when there are bodies)."""

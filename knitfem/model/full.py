@@ -211,6 +211,15 @@ class FullModel:
         d = self.barrier.min_distance(self.yarn_points(x)) if self.barrier else np.inf
         return self.comm.tompi4py().allreduce(d, op=MPI.MIN)
 
+    def step_limit(self, x, dx):
+        """The largest τ ≤ 1 by which the update dx of the state x may be
+        taken without a yarn surface passing into a body
+        (``colliders.Barrier.step_limit``; collective; 1 without bodies)."""
+        if self.barrier is None:
+            return 1.0
+        local = self.barrier.step_limit(self.yarn_points(x), self.yarn_points(dx))
+        return self.comm.tompi4py().allreduce(local, op=MPI.MIN)
+
     def tunnelled(self, x0, x1):
         """Why the step from x0 to x1 must be refused, or None: a yarn point
         whose straight path went deeper than one yarn radius into a body
