@@ -19,6 +19,7 @@ import numpy as np
 
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
+           "BodySeries",
            "draw", "draw_panels", "animate", "VIEWS"]
 
 def _pyplot():
@@ -60,20 +61,28 @@ def write_centrelines(path, P, radius, point_data=None):
     meshio.write(path, meshio.Mesh(pts, cells, point_data=data))
 
 
-def write_bodies(path, bodies, size):
-    """The surfaces of ``bodies`` (``colliders``) as one triangle mesh with
-    point data ``body`` (its index), for ParaView beside the yarns; a plane
-    is drawn as a square of half-side ``size``."""
-    import meshio
-
+def _body_arrays(bodies, size):
+    """The surfaces of ``bodies`` as one triangle mesh: (points, cells,
+    point data ``body``, each point's body index); a plane is drawn as a
+    square of half-side ``size``."""
     pts, tris, which = [], [], []
     for k, body in enumerate(bodies):
         p, t = body.surface(size)
         tris.append(t + sum(len(q) for q in pts))
         pts.append(p)
         which.append(np.full(len(p), k, dtype=float))
-    mesh = meshio.Mesh(np.concatenate(pts), [("triangle", np.concatenate(tris))],
-                       point_data={"body": np.concatenate(which)})
+    return (np.concatenate(pts), [("triangle", np.concatenate(tris))],
+            {"body": np.concatenate(which)})
+
+
+def write_bodies(path, bodies, size):
+    """The surfaces of ``bodies`` (``colliders``) as one triangle mesh with
+    point data ``body`` (its index), for ParaView beside the yarns; a plane
+    is drawn as a square of half-side ``size``."""
+    import meshio
+
+    pts, cells, data = _body_arrays(bodies, size)
+    mesh = meshio.Mesh(pts, cells, point_data=data)
     atomic_write(path, lambda tmp: meshio.write(tmp, mesh, file_format="vtu"))
 
 
@@ -126,12 +135,15 @@ class CentrelineSeries:
     ``Information`` (e.g. the checkpoint a series continues from).
     """
 
+    topology = ("Polyline", 2)      # XDMF topology type, points a cell
+    constant = FIXED                # point data written once, in mesh.h5
+
     def __init__(self, path, P0, radius, keep=None, note=""):
         self.path, self.radius, self.note = path, radius, note
         stem = os.path.splitext(os.path.basename(path))[0]
         self.dir = os.path.join(os.path.dirname(path) or ".", stem)
         self.rel = stem
-        pts, cells, data = _mesh_arrays(P0, radius)
+        pts, cells, data = self._arrays(P0)
         self.npts, self.ncells = len(pts), len(cells[0][1])
         self.steps, self._grids = {}, {}        # the grids: XDMF of each frame
         os.makedirs(self.dir, exist_ok=True)
@@ -144,12 +156,16 @@ class CentrelineSeries:
 
         def mesh(f):
             f["topology"] = cells[0][1]
-            for key in FIXED:
+            for key in self.constant:
                 f[key] = data[key]
 
         atomic_write(os.path.join(self.dir, "mesh.h5"),
                      lambda tmp: write_hdf5(tmp, mesh))
         self._write_xdmf()
+
+    def _arrays(self, P, point_data=None):
+        """(points, cells, point data) of a frame's geometry P."""
+        return _mesh_arrays(P, self.radius, point_data)
 
     @staticmethod
     def _step_of(name):
@@ -172,9 +188,10 @@ class CentrelineSeries:
         return found
 
     def write(self, step, t, P, point_data=None):
-        """Frame ``step`` at time t: the yarns P (``Curves``)."""
-        pts, _, data = _mesh_arrays(P, self.radius, point_data)
-        extra = {k: v for k, v in data.items() if k not in FIXED}
+        """Frame ``step`` at time t: the yarns P (``Curves``; a body
+        series: its bodies)."""
+        pts, _, data = self._arrays(P, point_data)
+        extra = {k: v for k, v in data.items() if k not in self.constant}
         shapes = {k: np.shape(v) for k, v in extra.items()}
 
         def frame(f):
@@ -212,15 +229,16 @@ class CentrelineSeries:
         one, three = (self.npts,), (self.npts, 3)
         t, shapes = self.steps[step]
         frame = f"{step:08d}.h5"
+        kind, per = self.topology
         return (f'<Grid Name="step{step}" GridType="Uniform"><Time Value="{t!r}"/>'
-                f'<Topology TopologyType="Polyline" NodesPerElement="2" '
+                f'<Topology TopologyType="{kind}" NodesPerElement="{per}" '
                 f'NumberOfElements="{self.ncells}"><DataItem Dimensions='
-                f'"{self.ncells} 2" Format="HDF" NumberType="Int" Precision="8">'
+                f'"{self.ncells} {per}" Format="HDF" NumberType="Int" Precision="8">'
                 f'{self.rel}/mesh.h5:/topology</DataItem></Topology>'
                 f'<Geometry GeometryType="XYZ">'
                 f'{self._item(frame, "geometry", three)}</Geometry>'
                 + self._attribute("position", frame, three, "geometry")
-                + "".join(self._attribute(n, "mesh.h5", one) for n in FIXED)
+                + "".join(self._attribute(n, "mesh.h5", one) for n in self.constant)
                 + "".join(self._attribute(n, frame, s) for n, s in shapes.items())
                 + '</Grid>')
 
@@ -231,12 +249,29 @@ class CentrelineSeries:
         def index(tmp):
             with open(tmp, "w") as f:
                 f.write('<?xml version="1.0"?>\n<Xdmf Version="3.0"><Domain>\n'
-                        + note + '<Grid Name="yarns" GridType="Collection" '
+                        + note + f'<Grid Name="{self.rel}" GridType="Collection" '
                         'CollectionType="Temporal">\n' + "\n".join(grids)
                         + "\n</Grid></Domain></Xdmf>\n")
 
         atomic_write(self.path, index)
 
+
+
+class BodySeries(CentrelineSeries):
+    """The bodies' surfaces as an XDMF time series beside the yarns' (rank
+    0): a frame is the tuple of bodies as they are then, ``size`` the half
+    side a plane is drawn with; point data ``body`` and ``position`` (see
+    ``CentrelineSeries``, whose restart and atomic writing it shares)."""
+
+    topology = ("Triangle", 3)
+    constant = ("body",)
+
+    def __init__(self, path, bodies, size, keep=None, note=""):
+        self.size = size
+        super().__init__(path, bodies, 0.0, keep, note)
+
+    def _arrays(self, bodies, point_data=None):
+        return _body_arrays(bodies, self.size)
 
 def _camera(azimuth, elevation):
     """Rows: the screen's right, up and towards-the-viewer axes in world

@@ -61,9 +61,10 @@ def _default(prefix, name, value):
         opts.setValue(prefix + name, value)
 
 
-def step_convergence(saddle, step_tol, system):
-    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update
-    that moves no yarn control point by more than ``step_tol()``
+def step_convergence(saddle, step_tol, system, limited=lambda: False):
+    """SNES convergence test: PETSc's atol/rtol on |F|, or a Newton update,
+    taken in full (not ``limited()`` by the system's step limit), that moves
+    no yarn control point by more than ``step_tol()``
     (``system.yarn_move``: the coordinates' update through ε = Γ q, not the
     multipliers'). The residual of stiff yarns carries round-off far above
     any absolute tolerance on |F|; and volume control points that carry
@@ -85,7 +86,7 @@ def step_convergence(saddle, step_tol, system):
             return R.ITERATING
         if fnorm <= rtol * test.f0:
             return R.CONVERGED_FNORM_RELATIVE
-        if ynorm <= step_tol():
+        if ynorm <= step_tol() and not limited():
             return R.CONVERGED_SNORM_RELATIVE
         if it >= max_it:
             return R.DIVERGED_MAX_IT
@@ -157,6 +158,7 @@ class SymplecticEuler:
 
     def step(self, t, x, v, t_stop=None):
         s, h = self.system, self.control.propose(t, t_stop)[0]
+        s.move_bodies(t, t)                     # forces where the bodies are now
         s.forces(x, v, self.Q)
         s.M.mult(v, self.Mv)
         self.Mv.axpy(h, self.Q)
@@ -264,25 +266,34 @@ class NewtonStepper:
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
         self.snes.setFunction(self._residual, self.F)
+        bodies = getattr(getattr(system, "full", system), "barrier", None) is not None
+        if bodies:
+            self.snes.setLineSearchPreCheck(self._limit)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
+        self.limited = False                # the last update was shortened
         self.snes.setConvergenceTest(self._missing_entries(step_convergence(
-            self.saddle, lambda: self.newton_tol / self.kappa, system)))
+            self.saddle, lambda: self.newton_tol / self.kappa, system,
+            lambda: self.limited)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
         self.ksp = saddle_ksp(self.saddle, prefix)
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
+        # one pre-check: a body's step limit (which also applies the yarn
+        # contact's), else the yarn contact's filter alone
         self.filter = set_step_filter(self.snes, self._step_fraction) \
-            if getattr(system, "yarn_contact", None) is not None else None
+            if getattr(system, "yarn_contact", None) is not None and not bodies \
+            else None
         self.missing = None                 # tangent entries missed before a solve
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
         self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
         self.vhat, self.xhat, self.e = new(), new(), new()
         self.xref = new()                   # where the last tangent was formed
+        self.dxe = new()                    # a Newton update's move of ε_{n+1}
         self.Q, self.Mv, self.tmp = new(), new(), new()
         self.mu, self.Cx = system.C.createVecLeft(), system.C.createVecLeft()
         self.lam = system.C.createVecLeft()          # −λ of the last step
@@ -411,6 +422,19 @@ class NewtonStepper:
             s.constraint_residual(self.xe, self.Cx)
             fl[:] = self.Cx.getArray(readonly=True) / self.kappa
 
+    def _limit(self, z, y):
+        """Newton's update −y of z shortened to the system's ``step_limit``
+        on the end point's move −κ y_u (a yarn stopped at a body's surface)."""
+        self._unpack(z)
+        self.dxe.getArray()[:] = -self.kappa * self.saddle.split(y)[0]
+        tau = self.system.step_limit(self.xe, self.dxe)
+        self.limited = tau < 1.0            # at a body: not converged yet
+        if getattr(self.system, "yarn_contact", None) is not None:
+            tau = min(tau, self._step_fraction(z.getArray(readonly=True),
+                                               y.getArray(readonly=True)))
+        if tau < 1.0:
+            y.scale(tau)
+
     def _jacobian(self, snes, z, J, P):
         s = self.system
         self._unpack(z)
@@ -431,6 +455,7 @@ class NewtonStepper:
         self.xe and ε̇_{n+1} in self.v; raises SimulationError on failure."""
         s = self.system
         self.h = h
+        s.move_bodies(self.t_n, self.t_n + h)   # bodies where they are at its end
         self.coefficients(h)
         c = self.control
         if c.adaptive:
@@ -506,6 +531,7 @@ class NewtonStepper:
 
     def _commit(self, x, v, h):
         self.steps += 1
+        self.t_n += h
         self.accepted(h)
         if self.control.adaptive:
             self.history.push(self.xe.getArray(readonly=True), h)
@@ -525,8 +551,9 @@ class NewtonStepper:
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
         stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
-        if self.system.begin_step(x):           # lagged quantities (friction)
+        if self.system.begin_step(x, t):        # lagged quantities (friction)
             self.relayout(x)                    # a new tangent pattern
+        self.t_n = t                            # where the next (part) step starts
         c = self.control
         while True:
             h, landed = c.propose(t, t_stop)

@@ -172,3 +172,26 @@ def constraints_off_rest(m, shift, mu_all, weight=0.5):
     m.constraint_residual(x, g)
     m.constraint_jacobian(x)
     return g, m.stiffness(x, mu, weight)
+
+
+def barrier_differences(model, x, rng):
+    """The barrier and friction of ``model`` at the yarn points x against
+    central differences along a random direction d: (dP, ∇P·d, K d, the
+    gradient's difference), P = E_c + D."""
+    b = model.barrier
+    indptr3, indices3, _ = model.pattern.blocks3()
+
+    def gradient(y):
+        g = np.zeros_like(y)
+        b.add_gradient(y, g)
+        return g
+
+    slot = model.slot3
+    values = np.zeros_like(model.K_values)
+    b.add_hessian(x, slot, values)
+    K = sp.csr_matrix((values, indices3, indptr3))
+    h, d = 1e-3 * b.eps_slip, rng.standard_normal(x.shape)
+    total = lambda y: b.energy(y) + b.friction_potential(y)   # noqa: E731
+    dP = (total(x + h * d) - total(x - h * d)) / (2 * h)
+    fd = (gradient(x + h * d) - gradient(x - h * d)) / (2 * h)
+    return dP, np.sum(gradient(x) * d), K @ d.ravel(), fd.ravel()

@@ -426,3 +426,36 @@ def test_declarations_are_what_help_lists():
         listed = [line.split()[0] for line in knitfem(command, "-help").stdout
                   .splitlines() if line.startswith("  -")]
         assert [f"-{d.name}" for d in declarations(command)] == listed
+
+
+def test_sleeve_forearm_turns_and_the_bodies_are_written_as_a_series(tmp_path):
+    """-knit_scene sleeve: at the end the forearm has turned by the elbow
+    angle about x towards +y (the eased motion passes through its last
+    keyframe exactly), summary.json gives the angle and both capsules, and
+    bodies.xdmf holds a frame for every frame of yarns.xdmf, the forearm's
+    tip where the summary says."""
+    import meshio
+
+    out = tmp_path / "sleeve"
+    p = knitfem("run", "-knit_scene", "sleeve", "-knit_rows", "4", "-knit_cols", "8",
+                "-knit_model", "reduced", "-knit_friction", "0", "-knit_t_end", "0.03",
+                "-knit_elbow_angle", "30", "-knit_snapshots", "", "-o", str(out))
+    assert p.returncode == 0, p.stdout + p.stderr
+    s = json.load(open(out / "summary.json"))
+    assert s["elbow_angle_deg"] == 30
+    upper, fore = s["bodies"]
+    assert upper["type"] == fore["type"] == "capsule"
+    assert np.allclose(fore["p0"], 0, atol=1e-15)
+    axis = np.subtract(fore["p1"], fore["p0"])
+    assert np.degrees(np.arctan2(axis[1], axis[2])) == pytest.approx(30, abs=1e-9)
+    assert np.allclose(upper["p1"], 0, atol=1e-15) and upper["p0"][2] < 0
+    with meshio.xdmf.TimeSeriesReader(str(out / "bodies.xdmf")) as rd:
+        rd.read_points_cells()
+        steps = rd.num_steps
+        t, data, _ = rd.read_data(steps - 1)
+    with meshio.xdmf.TimeSeriesReader(str(out / "yarns.xdmf")) as rd:
+        assert rd.num_steps == steps
+    apex = np.add(fore["p1"], fore["radius"] * axis / np.linalg.norm(axis))
+    forearm = data["position"][data["body"] == 1]
+    assert t == pytest.approx(0.03)
+    assert np.min(np.linalg.norm(forearm - apex, axis=1)) < 1e-12

@@ -389,6 +389,18 @@ def colliders_from_options(opts):
         raise KnitError(f"-knit_collider: {err}") from None
 
 
+def moving_bodies(path, bodies):
+    """``bodies`` keyframed by the file of -knit_collider_motion (``motion``)."""
+    from knitfem.contact.motion import load_motions
+
+    if not path:
+        return bodies
+    try:
+        return load_motions(path, bodies)
+    except (OSError, ValueError) as err:
+        raise KnitError(f"-knit_collider_motion {path}: {err}") from None
+
+
 SETTLING = ("implicit", 1e-2)
 """Default (integrator, fixed step) of a reduced model on bodies: its soft
 loops ring against the body, which BDF2's error control follows in steps of
@@ -480,14 +492,19 @@ def run(comm):
             scene = cls(**params)
     turn = start_rotation_from_options(opts)
     bodies = colliders_from_options(opts)
+    motion = opts.getString("collider_motion", "", "JSON keyframes moving the "
+                            "bodies (the scene's, then -knit_collider's, by "
+                            "index): time [s], translation [m], rotation vector "
+                            "[deg] about a pivot [m] (knitfem.contact.motion)")
     friction = opts.getReal("friction", scene.friction, "Coulomb friction "
                             "coefficient between the yarns and the bodies (implicit "
                             "integrators; drape: 0.5, others 0)", nonnegative=True)
     material = material_from_options(opts, type(scene))
     t_end = opts.getReal("t_end", 3.0, "simulated time [s]", positive=True)
+    scene = scene.timed(t_end)
     kind = model_options(opts)[0]
     make_integrator = integrator_from_options(
-        opts, settle=kind == "reduced" and (bool(bodies) or name == "drape"))
+        opts, settle=kind == "reduced" and (bool(bodies) or scene.bodies))
     unstable = opts.getBool("unstable_dt", False, "run the symplectic integrator "
                             "even above its stable step 2/omega_max (it blows up)")
     static = opts.getBool("static", False, "solve for the static equilibrium instead "
@@ -552,7 +569,7 @@ def run(comm):
             fabric = make_fabric(name, jersey, turn, **scene.params)
         except ValueError as err:
             raise KnitError(str(err)) from None
-        fabric.bodies = fabric.bodies + bodies
+        fabric.bodies = moving_bodies(motion, fabric.bodies + bodies)
         fabric.friction = friction
         friction_fits(fabric, static, PETSc.Options().getString("knit_integrator", ""))
         system = build_system(comm, opts, fabric, material)
@@ -592,7 +609,7 @@ def run(comm):
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
-                         painter=painter, slow_step=slow)
+                         painter=painter, slow_step=slow, report=scene.report())
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

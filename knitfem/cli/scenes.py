@@ -20,6 +20,13 @@ drape       r × nc jersey, free, released horizontally (its thickness along
 catenary    one yarn of length L, ends pinned at (0,0,0) and (span,0,0); at
             rest a circular arc of length L sagging in −y (stress free).
 cantilever  one straight yarn of length L along +x, clamped at the origin.
+sleeve      a tube of r courses × nc stitches round (radius R_s, length L_s
+            at rest), its axis on z, centred on the elbow at the origin,
+            course 0 at the shoulder (z < 0), free on an arm of two capsules
+            of radius 0.75 R_s: the upper arm from (0, 0, −0.6 L_s) to the
+            origin, the forearm from the origin to (0, 0, 0.6 L_s), which
+            turns about x towards +y by the elbow angle, from rest to rest
+            (``motion.Motion`` eased) over the elbow's time.
 
 Any scene can start rigidly turned from its rest (``start_rotation``: the
 rest, energies and contacts stay those of the unturned fabric, the holds
@@ -28,7 +35,8 @@ are taken where the turned start puts them).
 
 import numpy as np
 
-from knitfem.contact.colliders import Sphere
+from knitfem.contact.colliders import Capsule, Sphere
+from knitfem.contact.motion import Kinematic, Motion
 from knitfem.knit.fabric import Fabric
 from knitfem.knit.pattern import Jersey, jersey_fabric
 
@@ -125,6 +133,28 @@ def pulled(jersey, stitch, force):
     return fab
 
 
+def sleeve(jersey, angle, duration):
+    """The ``jersey`` knitted as a tube along z, centred on the origin, on an
+    arm whose elbow, at the origin, bends by ``angle`` degrees over
+    ``duration`` seconds (module docstring)."""
+    tube = Jersey(jersey.rows, jersey.cols, jersey.radius, jersey.shape, "tube")
+    fabric = jersey_fabric(tube)
+    X = fabric.X.reshape(-1, 3)
+    centre = np.array([X[:, 0].mean(), 0.5 * (X[:, 1].min() + X[:, 1].max()),
+                       X[:, 2].mean()])
+    fabric = fabric.rotated(rotation((90, 0, 0)), centre)     # y (courses) to z
+    fabric.X = fabric.X - centre
+    X = fabric.X.reshape(-1, 3)
+    Rs, Ls = np.mean(np.hypot(X[:, 0], X[:, 1])), np.ptp(X[:, 2])
+    reach, arm = np.array([0.0, 0.0, 0.6 * Ls]), 0.75 * Rs
+    elbow = Motion([0.0, duration], rotations=[[0.0, 0.0, 0.0],
+                                               [-np.radians(angle), 0.0, 0.0]],
+                   ease=True)
+    fabric.bodies = (Capsule(-reach, np.zeros(3), arm),
+                     Kinematic(Capsule(np.zeros(3), reach, arm), elbow))
+    return fabric
+
+
 class Scene:
     """A built-in scene: the fabric it makes, its defaults and its picture.
 
@@ -142,6 +172,15 @@ class Scene:
     air_drag = 0.0
     friction = 0.0
     knitted = True
+    bodies = False                  # the scene has bodies of its own
+
+    def timed(self, t_end):
+        """This scene for a run to ``t_end`` [s] (a motion over the run)."""
+        return self
+
+    def report(self):
+        """What the summary says of this scene beyond the run's measures."""
+        return {}
 
     def __init__(self, **params):
         self.params = params
@@ -234,6 +273,7 @@ class Drape(Scene):
     """The free jersey laid flat above a sphere, on which it falls."""
 
     name, view = "drape", "three_quarter"
+    bodies = True
     friction = 0.5
     """A middling μ for fabric on a body; without friction the swatch
     balanced on the sphere slides off it."""
@@ -294,8 +334,45 @@ class Cantilever(Scene):
         return Fabric(X, jersey.radius, fixed=root, clamped=root)
 
 
+class Sleeve(Scene):
+    """A sleeve on an arm whose elbow bends (``sleeve``)."""
+
+    name, view = "sleeve", "side"
+    bodies = True
+    friction = 0.3
+    """Knitted fabric on skin or a shirt, a middling μ."""
+
+    def __init__(self, elbow_angle=60.0, elbow_time=0.0):
+        super().__init__(elbow_angle=elbow_angle, elbow_time=elbow_time)
+
+    @classmethod
+    def declare(cls, opts, jersey):
+        return dict(
+            elbow_angle=opts.getReal("elbow_angle", 60.0, "sleeve: the elbow bends "
+                                     "by this angle [deg], the forearm turning "
+                                     "towards +y"),
+            elbow_time=opts.getReal("elbow_time", 0.0, "sleeve: over this time [s] "
+                                    "from the start (0: over the whole run, "
+                                    "-knit_t_end)", nonnegative=True))
+
+    def timed(self, t_end):
+        if not self.params["elbow_time"]:
+            self.params["elbow_time"] = t_end
+        return self
+
+    def report(self):
+        return dict(elbow_angle_deg=self.params["elbow_angle"])
+
+    def fabric(self, jersey):
+        return sleeve(jersey, self.params["elbow_angle"],
+                      self.params["elbow_time"] or 1.0)
+
+    def problem(self, jersey):
+        return dict(super().problem(jersey), shape="tube")
+
+
 SCENES = {cls.name: cls for cls in (Hanging, Pulled, Freefall, Drape, Catenary,
-                                    Cantilever)}
+                                    Cantilever, Sleeve)}
 """The built-in scenes by name (-knit_scene)."""
 
 

@@ -40,11 +40,24 @@ potential
 so a point slides against a force μλ and sticks (moves by less than ε a
 step) below it; ∂D/∂x_q = μλ f₁(y) û, ∂²D/∂x_q² = μλ (f₁' û ûᵀ + f₁/y
 (T − û ûᵀ)), positive semi-definite, in the same 4 × 4 blocks.
+
+Bodies that move (``motion.Kinematic``) are where they are at the step's
+end time t₁ in E_c; friction measures the slip against the body, so a
+lagged point's reference is the body point that was at x⁰ at the step's
+start t₀, carried rigidly to t₁, and its normal turns with the body:
+
+    u = T₁ (x_q − x¹),   x¹ = R₁ R₀ᵀ (x⁰ − s₀) + s₁,   n₁ = R₁ R₀ᵀ n,
+
+(R, s) the body's pose x → R x + s at t₀ and t₁: the relative sliding
+velocity times the step. A resting point on a body that moves is carried
+along up to the force μλ.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
+
+from knitfem.contact.motion import moving
 
 __all__ = ["Sphere", "Capsule", "Plane", "Barrier", "parse_colliders", "KINDS"]
 
@@ -73,6 +86,13 @@ class Sphere:
 
     def describe(self):
         return f"sphere centre {np.round(self.centre, 6).tolist()} R {self.R:g} m"
+
+    def geometry(self):
+        return dict(type="sphere", centre=self.centre.tolist(), radius=self.R)
+
+    def moved(self, R, s):
+        """The sphere moved rigidly, x → R x + s."""
+        return Sphere(R @ self.centre + s, self.R)
 
     def surface(self, size=None):
         """Triangles of the surface: (points (n, 3), triangles (m, 3))."""
@@ -110,6 +130,13 @@ class Capsule:
         return (f"capsule {np.round(self.a, 6).tolist()} to "
                 f"{np.round(self.b, 6).tolist()} R {self.R:g} m")
 
+    def geometry(self):
+        return dict(type="capsule", p0=self.a.tolist(), p1=self.b.tolist(),
+                    radius=self.R)
+
+    def moved(self, R, s):
+        return Capsule(R @ self.a + s, R @ self.b + s, self.R)
+
     def surface(self, size=None):
         """Triangles of the surface: (points (n, 3), triangles (m, 3))."""
         axis = self.b - self.a
@@ -136,6 +163,13 @@ class Plane:
     def describe(self):
         return (f"plane through {np.round(self.point, 6).tolist()} normal "
                 f"{np.round(self.normal, 6).tolist()}")
+
+    def geometry(self):
+        return dict(type="plane", point=self.point.tolist(),
+                    normal=self.normal.tolist())
+
+    def moved(self, R, s):
+        return Plane(R @ self.point + s, R @ self.normal)
 
     def surface(self, size=1.0):
         """A square of side 2 ``size`` about ``point``: (points, triangles)."""
@@ -223,15 +257,59 @@ class Barrier:
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged = None
 
-    def lag(self, x):
-        """Friction's quantities at the step start x (module docstring):
-        (elements, μλ (e, q), T (e, q, 3, 3), x⁰ (e, q, 3)) of the elements
-        with a point within the gap; none without friction."""
+    def at(self, t):
+        """Pose the moving bodies at time t."""
+        for body in self.bodies:
+            if moving(body):
+                body.at(t)
+
+    @property
+    def moves(self):
+        """Whether any body moves."""
+        return any(moving(body) for body in self.bodies)
+
+    def lag(self, x, t=None):
+        """Friction's quantities at the step start x, the bodies posed at
+        time t (module docstring): (elements, μλ (e, q), T (e, q, 3, 3), x⁰
+        (e, q, 3)) of the elements with a point within the gap; none without
+        friction."""
+        if t is not None:
+            self.at(t)
+        self.window = None
         if not self.mu:
             return
-        e, _, n, _, d1, _ = self._active(x)
+        e, _, n, _, d1, _, which = self._active(x)
+        self.start = (which, n, self.el.points(x)[e],
+                      [(b.R, b.s) if moving(b) else None for b in self.bodies])
+        self.lagged = (e, -self.mu * d1, None, None)
+        self._carry()
+
+    def step_to(self, t0, t1):
+        """The step runs from t0 to t1: the bodies posed at t1, the lagged
+        references carried with them (module docstring)."""
+        if not self.moves:
+            return
+        self.window = (t0, t1)
+        self.at(t1)
+        if self.lagged is not None:
+            self._carry()
+
+    def _carry(self):
+        """x¹ and T₁ of the lagged points, each carried by its body from its
+        pose at the lag to its pose now."""
+        which, n, x0, poses = self.start
+        n, x1 = n.copy(), x0.copy()
+        for b, pose in enumerate(poses):
+            if pose is None:
+                continue
+            mine = which == b
+            R0, s0 = pose
+            R = self.bodies[b].R @ R0.T
+            n[mine] = n[mine] @ R.T
+            x1[mine] = (x0[mine] - s0) @ R.T + self.bodies[b].s
         T = np.eye(3) - n[..., :, None] * n[..., None, :]
-        self.lagged = (e, -self.mu * d1, T, self.el.points(x)[e])
+        e, mul = self.lagged[:2]
+        self.lagged = (e, mul, T, x1)
 
     def _slip(self, x):
         """(elements, μλ, T, u, y = |u|) of the lagged points at x."""
@@ -275,8 +353,9 @@ class Barrier:
 
     def _active(self, x):
         """Elements with a point within the gap, and f', f'' (weighted by
-        w_q |X'|) there: (elements, δ, n, H, w f', w f''); n and ∇²φ are
-        those of each point's nearest body, formed for these elements only."""
+        w_q |X'|) there: (elements, δ, n, H, w f', w f'', nearest body);
+        n and ∇²φ are those of each point's nearest body, formed for these
+        elements only."""
         delta, nearest, pts = self.surface_distance(x)
         e = np.flatnonzero((delta < self.gap).any(axis=1))
         n, H = np.zeros((len(e),) + pts.shape[1:]), np.zeros((len(e),) + pts.shape[1:] + (3,))
@@ -285,7 +364,8 @@ class Barrier:
             _, n[mine], H[mine] = body.distance(pts[e][mine])
         s = np.maximum(self.gap - delta[e], 0.0)
         W = self.el.W[e]
-        return e, delta[e], n, H, -W * self.kappa * s**2, 2 * W * self.kappa * s
+        return (e, delta[e], n, H, -W * self.kappa * s**2, 2 * W * self.kappa * s,
+                nearest[e])
 
     def energy(self, x):
         """E_c (local elements)."""
@@ -295,7 +375,7 @@ class Barrier:
 
     def add_gradient(self, x, out, scale=1.0):
         """out (ncp, 3) += scale ∂(E_c + D)/∂ε (D: friction, when lagged)."""
-        e, _, n, _, d1, _ = self._active(x)
+        e, _, n, _, d1, _, _ = self._active(x)
         g = np.einsum("eq,qa,eqi->eai", d1, self.el.B, n)
         np.add.at(out, self.el.conn[e], scale * g)
         if self.lagged is not None:
@@ -306,7 +386,7 @@ class Barrier:
     def add_hessian(self, x, slot, values):
         """values[slot[e]] += ∂²E_c/∂p∂p of the active elements; ``slot`` the
         yarn elements' (ne, 12, 12) value slots."""
-        e, _, n, H, d1, d2 = self._active(x)
+        e, _, n, H, d1, d2, _ = self._active(x)
         Hq = d2[..., None, None] * n[..., :, None] * n[..., None, :] \
             + d1[..., None, None] * H                                # (e, q, 3, 3)
         self._add_blocks(e, Hq, slot, values)
@@ -324,17 +404,58 @@ class Barrier:
     def swept_depth(self, x0, x1, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
         from x0 to x1 (local; +inf without elements), each path sampled
-        every ``resolution`` × r at least: a step that carried a yarn point
-        through a body shows a depth there even when it ends outside."""
+        every ``resolution`` × r at least, the moving bodies along their
+        own paths over the step (``step_to``): a step that carried a yarn
+        point through a body shows a depth there even when it ends outside."""
         p0, p1 = self.el.points(x0), self.el.points(x1)
         reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
+        window = getattr(self, "window", None)
+        if window is not None:
+            reach += self.reach(*window, p1.reshape(-1, 3))
         m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
         deepest = np.inf
         for tau in np.arange(1, m + 1) / m:
+            if window is not None:
+                self.at(window[0] + tau * (window[1] - window[0]))
             pts = (p0 + tau * (p1 - p0)).reshape(-1, 3)
             phi = np.min([body.phi(pts) for body in self.bodies], axis=0)
             deepest = min(deepest, float(phi.min(initial=np.inf)) - self.radius)
         return deepest
+
+    def reach(self, t0, t1, x):
+        """How far the moving bodies carry their points at x (n, 3) from t0
+        to t1, at most."""
+        far = 0.0
+        for body in filter(moving, self.bodies):
+            (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
+            far = max(far, float(np.abs(x @ (R1 - R0).T + s1 - s0).max(initial=0)))
+        return far
+
+    def step_limit(self, x, dx, iterations=30):
+        """The largest τ ≤ 1 such that the update τ dx of the yarn points x
+        takes no quadrature point below δ = min(δ(x), 0) − ĥ (local): a
+        Newton update stops about where a yarn surface meets a body, in
+        the barrier whose stiffness the next iteration knows, rather than
+        far inside it (a step filter, as in IPC). Along a straight path φ is convex for a
+        sphere, a capsule or a plane, so the first crossing of each point is
+        found by bisection."""
+        p, q = self.el.points(x).reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
+
+        def delta(pts):
+            return np.min([body.phi(pts) for body in self.bodies], axis=0) - self.radius
+
+        bound = np.minimum(delta(p), 0.0) - self.gap
+        out = np.flatnonzero(delta(p + q) < bound)
+        if not len(out):
+            return 1.0
+        p, q, bound = p[out], q[out], bound[out]
+        lo, hi = np.zeros(len(out)), np.ones(len(out))
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            below = delta(p + mid[:, None] * q) < bound
+            hi = np.where(below, mid, hi)
+            lo = np.where(below, lo, mid)
+        return float(lo.min())
 
     def min_distance(self, x):
         """Smallest δ (local; +inf without elements)."""

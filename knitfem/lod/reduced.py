@@ -85,7 +85,9 @@ def volume_options(opts, bodies=False):
     """((n1, n2), path) from -knit_lod n1,n2 (default 5,5; 6,6 with bodies,
     which a volume of three patches a way can wrap) and -knit_volume FILE."""
     lod = opts.getInts("lod", (6, 6) if bodies else (5, 5), "bounding-volume "
-                       "control points n1,n2 (6,6 with -knit_collider or drape)", 2, 4)
+                       "control points n1,n2 (6,6 with -knit_collider or drape; "
+                       "a tube on bodies: about one every 3.5 cm around and "
+                       "along, at most 200 in all)", 2, 4)
     path = opts.getString("volume", "", "bounding volume file (meshio; default: "
                           "a box around the fabric at rest)")
     return lod, path
@@ -158,11 +160,28 @@ def sampling_note(system):
             f"training, {rep['held_out_error']:.2g} held out; {rep['source']})")
 
 
+def garment_lod(fabric, lod, spacing=0.035):
+    """Control points (around, along) of a tube's volume on bodies: about
+    one a ``spacing`` [m] around and along it (a sleeve that bends at an
+    elbow), at least ``lod``, at most ``DENSE_LIMIT`` in all (the shell
+    stretch's dense tangent)."""
+    pts = fabric.X.reshape(-1, 3) @ np.asarray(fabric.frame)
+    around = 2 * np.pi * np.hypot(*(pts[:, [0, 2]] - pts[:, [0, 2]].mean(0)).T).mean()
+    n = np.maximum(lod, [np.ceil(around / spacing), np.ceil(np.ptp(pts[:, 1]) /
+                                                            spacing) + 3])
+    while 2 * n.prod() > DENSE_LIMIT and n.max() > max(lod):
+        n[np.argmax(n)] -= 1
+    return tuple(int(k) for k in n)
+
+
 def embedding_from_options(opts, comm, fabric, layout=None):
-    """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ."""
+    """The bounding volume of -knit_lod n1,n2 (or -knit_volume FILE) and Γ;
+    a tube on bodies, without -knit_lod, gets ``garment_lod``'s."""
     from knitfem.model.assembly import YarnLayout
 
     lod, path = volume_options(opts, bool(fabric.bodies))
+    if fabric.closed.any() and fabric.bodies and not PETSc.Options().hasName("knit_lod"):
+        lod = garment_lod(fabric, lod)
     if path:
         try:
             volume = BoundingVolume.load(path)
@@ -221,11 +240,21 @@ class EmbeddedModel:
         return self.full.tunnelled(self.full_state(q0, self.eps),
                                    self.full_state(q1, self.deps))
 
-    def begin_step(self, q):
-        """A step starts from q: the full model's lagged friction at Γ q (ε
-        is formed only when there are bodies)."""
+    def step_limit(self, q, dq):
+        """The full model's limit on the update Γ dq from Γ q (collective)."""
+        if self.full.barrier is None:
+            return 1.0
+        return self.full.step_limit(self.full_state(q, self.eps),
+                                    self.full_state(dq, self.deps))
+
+    def begin_step(self, q, t=None):
+        """A step starts from q at time t: the full model's lagged friction
+        at Γ q (ε is formed only when there are bodies)."""
         if self.full.barrier is not None:
-            self.full.begin_step(self.full_state(q, self.eps))
+            self.full.begin_step(self.full_state(q, self.eps), t)
+
+    def move_bodies(self, t0, t1):
+        self.full.move_bodies(t0, t1)
 
     def yarn_move(self, dq):
         """max |Γ δq| for the local part ``dq`` (array) of an update δq: how far

@@ -204,15 +204,15 @@ class FullModel:
         return self.fabric.curves(np.concatenate(parts))
 
     # -- mechanics -----------------------------------------------------------
-    def begin_step(self, x):
-        """A step starts from the state x: friction's normal forces and
-        reference points are taken there (lagged, ``colliders``); sliding
+    def begin_step(self, x, t=None):
+        """A step starts from the state x at time t: friction's normal forces
+        and reference points are taken there (lagged, ``colliders``); sliding
         crossings start the search for their point from there, and must lie
         inside their windows; the tangent's pattern is laid out again around
         x when the yarn pairs near contact no longer fit it. Returns whether
         it was (the Newton matrix must then be made again). Collective."""
         if self.barrier is not None:
-            self.barrier.lag(self.yarn_points(x))
+            self.barrier.lag(self.yarn_points(x), t)
         out = self.constraints.commit(x)
         if out:
             raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
@@ -259,6 +259,12 @@ class FullModel:
             return np.inf
         return self.yarn_contact.min_distance(self.all_points(x))
 
+    def move_bodies(self, t0, t1):
+        """The step (or a part of it) runs from t0 to t1: moving bodies go
+        where they are at t1 (``colliders.Barrier.step_to``)."""
+        if self.barrier is not None:
+            self.barrier.step_to(t0, t1)
+
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier, + E_y, the yarn
         contact's) (collective)."""
@@ -288,6 +294,15 @@ class FullModel:
         without bodies)."""
         d = self.barrier.min_distance(self.yarn_points(x)) if self.barrier else np.inf
         return self.comm.tompi4py().allreduce(d, op=MPI.MIN)
+
+    def step_limit(self, x, dx):
+        """The largest τ ≤ 1 by which the update dx of the state x may be
+        taken without a yarn surface passing into a body
+        (``colliders.Barrier.step_limit``; collective; 1 without bodies)."""
+        if self.barrier is None:
+            return 1.0
+        local = self.barrier.step_limit(self.yarn_points(x), self.yarn_points(dx))
+        return self.comm.tompi4py().allreduce(local, op=MPI.MIN)
 
     def tunnelled(self, x0, x1):
         """Why the step from x0 to x1 must be refused, or None: a yarn point

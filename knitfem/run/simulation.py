@@ -36,6 +36,7 @@ from solvers.petsc_errors import petsc_failure
 from solvers.saddle import WORKSPACE_RAISED
 
 from knitfem.contact.gaps import YarnGaps
+from knitfem.contact.motion import moving
 from knitfem.yarn import bspline
 from knitfem.run import interrupts
 from knitfem import io
@@ -85,13 +86,15 @@ class Simulation:
     slow_step : float
         Seconds into a step after which its retries get a progress line
         (``heard``; 0: every retry). More MUMPS workspace always gets one.
+    report : dict
+        The scene's own entries in the summary (e.g. the sleeve's elbow angle).
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
                  animation="", energy_growth=0.5, stall_steps=100, painter=None,
-                 series="yarns.xdmf", settled=None, slow_step=5.0):
+                 series="yarns.xdmf", settled=None, slow_step=5.0, report=None):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -100,6 +103,7 @@ class Simulation:
         self.own_output = isinstance(out, str)
         self.out = self.output.path if self.output else None
         self.problem, self.command = dict(problem or {}), command or sys.argv
+        self.report = dict(report or {})    # the scene's own words in the summary
         self.output_every, self.snapshots = max(1, output_every), sorted(snapshots)
         self.drift_tol, self.checkpoint_every = drift_tol, checkpoint_every
         self.energy_growth, self.stall_steps = energy_growth, stall_steps
@@ -118,6 +122,7 @@ class Simulation:
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
         self.bodies = tuple(self.full.fabric.bodies)
+        self.body_series = None
         self.min_collider = np.inf
         self.weights = self.full.m.createVecLeft()
         one = self.full.m.createVecRight()
@@ -216,6 +221,15 @@ class Simulation:
         return self.system.gather_points(self.x)
 
     # -- output --------------------------------------------------------------
+    def posed(self):
+        """The bodies where they are now (a moving one as its posed body)."""
+        return tuple(b.body if moving(b) else b for b in self.bodies)
+
+    @property
+    def moving(self):
+        """Whether a body moves (it works on the knit)."""
+        return any(map(moving, self.bodies))
+
     def _path(self, name):
         return os.path.join(self.out, name)
 
@@ -247,7 +261,7 @@ class Simulation:
         """Keep a snapshot for the panel and have its PNG drawn (rank 0)."""
         self.frames.append((title, P))             # title: "t = 0.4 s"
         self.paint("draw", self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
-                   self.full.fabric.radius, view=self.view, bodies=self.bodies,
+                   self.full.fabric.radius, view=self.view, bodies=self.posed(),
                    title=f"{self.scene}, {self.system.kind} model, {title}")
 
     def _write_frame(self, P):
@@ -256,9 +270,13 @@ class Simulation:
             self.series = io.CentrelineSeries(self._path(self.series_name), P,
                                               self.full.fabric.radius, keep, note)
             if self.bodies:                  # for ParaView, beside the yarns
-                io.write_bodies(self._path("bodies.vtu"), self.bodies,
-                                float(np.ptp(P.points, axis=0).max()))
+                size = float(np.ptp(P.points, axis=0).max())
+                io.write_bodies(self._path("bodies.vtu"), self.posed(), size)
+                self.body_series = io.BodySeries(self._path("bodies.xdmf"),
+                                                 self.posed(), size, keep, note)
         self.series.write(self.step_count, self.t, P)
+        if self.body_series is not None:
+            self.body_series.write(self.step_count, self.t, self.posed())
         if self.animation:
             self.movie.append((self.t, P))
 
@@ -278,11 +296,11 @@ class Simulation:
             titles, frames = zip(*self.frames)
             self.paint("draw_panels", self._path(f"{self.scene}_snapshots.png"),
                        frames, self.full.fabric.radius, titles, view=self.view,
-                       bodies=self.bodies)
+                       bodies=self.posed())
         if len(self.movie) > 1:
             times, frames = zip(*self.movie)
             self.paint("animate", self._path(self.animation), times, frames,
-                       self.full.fabric.radius, view=self.view, bodies=self.bodies,
+                       self.full.fabric.radius, view=self.view, bodies=self.posed(),
                        title=f"{self.scene}, {self.system.kind} model")
         if self.painter is not None:
             painter, self.painter = self.painter, None
@@ -564,8 +582,9 @@ class Simulation:
         of the motion, the larger of the highest kinetic energy and the
         potential energy released at earlier progress points. Damping only
         takes energy away, so growth is the integrator's (a generalized-α
-        step feeding unresolved stiff modes, say)."""
-        if not self.energy_growth or len(self.energy) < 3:
+        step feeding unresolved stiff modes, say). Bodies that move work on
+        the knit: no check then."""
+        if not self.energy_growth or len(self.energy) < 3 or self.moving:
             return
         # (points seen, lowest total, highest kinetic, lowest potential) of the
         # earlier points, brought up to date with the new ones only
@@ -628,7 +647,7 @@ class Simulation:
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
                    newton_iterations=self.stats["newton"],
-                   ksp_iterations=self.stats["ksp"], **m,
+                   ksp_iterations=self.stats["ksp"], **self.report, **m,
                    **self.full.slide_report(self.eps))
         if rec["adaptive"]:
             rec.update(rtol=control.rtol, atol=control.atol)
@@ -642,8 +661,9 @@ class Simulation:
         if self.comm.rank == 0:
             flat = pts.points
             low = flat[np.argmin(flat[:, 1])]
-            if self.system.fabric.bodies:
-                centre = self.system.fabric.bodies[0]
+            if self.bodies:
+                rec["bodies"] = [b.geometry() for b in self.posed()]
+                centre = self.posed()[0]
                 centre = getattr(centre, "centre", getattr(centre, "a", None))
                 if centre is not None:
                     rec["lowest_point_below_collider_centre"] = float(centre[1] - low[1])

@@ -1,0 +1,155 @@
+"""Bodies that move: the keyframed motion passes through its keyframes and
+is C¹, a posed body is the rest body moved rigidly, a body moving at a
+constant velocity carries a resting yarn by friction, and the barrier with
+the carried friction is still one potential (finite differences)."""
+
+import json
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from helpers import barrier_differences, jersey, run
+from knitfem.contact.colliders import Capsule, Plane, Sphere
+from knitfem.contact.motion import Kinematic, Motion, load_motions, rotation_matrix
+from knitfem.knit.fabric import Fabric
+from knitfem.model.full import FullModel, Material
+
+SELF = PETSc.COMM_SELF
+KEYS = dict(times=[0.0, 0.3, 0.5, 1.0],
+            translations=[[0, 0, 0], [0.01, 0.0, 0.002], [0.01, 0.004, 0.0],
+                          [-0.002, 0.0, 0.0]],
+            rotations=np.radians([[0, 0, 0], [10, 0, 0], [0, 25, 5], [0, 0, 40]]),
+            pivot=[0.001, 0.002, -0.003])
+
+
+@pytest.mark.parametrize("ease", [False, True])
+def test_motion_passes_through_its_keyframes_and_is_c1(ease):
+    """At every keyframe the pose is the keyframe's exactly; across an inner
+    keyframe the velocity of a body point has no jump (one-sided differences
+    of step 1e-6 s agree to 1e-4 of the speed: measured 3e-5); with ``ease``
+    it starts and stops from rest."""
+    m = Motion(**KEYS, ease=ease)
+    p = np.array([0.003, -0.001, 0.002])
+    for k, t in enumerate(KEYS["times"]):
+        R, s = m.pose(t)
+        want = (rotation_matrix(KEYS["rotations"][k]) @ (p - KEYS["pivot"])
+                + KEYS["pivot"] + KEYS["translations"][k])
+        assert np.allclose(R @ p + s, want, rtol=0, atol=1e-15)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-14)
+
+    def x(t):
+        R, s = m.pose(t)
+        return R @ p + s
+
+    h = 1e-6
+    for t in KEYS["times"][1:-1]:
+        before = (x(t) - x(t - h)) / h
+        after = (x(t + h) - x(t)) / h
+        assert np.linalg.norm(after - before) < 1e-4 * np.linalg.norm(after)
+    start = np.linalg.norm(x(h) - x(0.0)) / h
+    assert (start < 1e-4) if ease else (start > 1e-3)
+
+
+def test_two_keyframes_move_at_constant_velocity_and_turn_about_a_fixed_axis():
+    """Two keyframes: the translation is linear in t, a turn about a fixed
+    axis the linearly interpolated angle, exactly; with ease, smoothstep."""
+    m = Motion([1.0, 3.0], [[0, 0, 0], [0.02, 0, 0]],
+               np.radians([[0, 0, 0], [0, 0, 60]]))
+    for t in (1.5, 2.0, 2.7):
+        R, s = m.pose(t)
+        angle = 30.0 * (t - 1.0)
+        assert np.allclose(R, rotation_matrix(np.radians([0, 0, angle])), atol=1e-14)
+        assert np.allclose(s, [0.01 * (t - 1.0), 0, 0], atol=1e-15)
+    eased = Motion([0.0, 1.0], rotations=np.radians([[0, 0, 0], [60, 0, 0]]),
+                   ease=True)
+    R = eased.pose(0.25)[0]
+    smooth = 3 * 0.25**2 - 2 * 0.25**3
+    assert np.arctan2(R[2, 1], R[1, 1]) == pytest.approx(np.radians(60) * smooth,
+                                                          rel=1e-12)
+
+
+@pytest.mark.parametrize("body", [Sphere(np.array([0.01, -0.002, 0.0]), 0.004),
+                                  Capsule(np.array([0.0, -0.002, -0.01]),
+                                          np.array([0.02, -0.002, 0.01]), 0.003),
+                                  Plane(np.array([0.0, 0.003, 0.0]),
+                                        np.array([0.2, -1.0, 0.1]))])
+def test_a_posed_body_is_the_rest_body_moved(body):
+    """φ of the posed body at R x + s is φ of the rest body at x, its normal
+    turned by R."""
+    moving = Kinematic(body, Motion(**KEYS)).at(0.4)
+    x = np.random.default_rng(1).normal(scale=0.01, size=(20, 3))
+    y = x @ moving.R.T + moving.s
+    phi0, n0, _ = body.distance(x)
+    phi1, n1, _ = moving.distance(y)
+    assert np.allclose(phi1, phi0, rtol=0, atol=1e-15)
+    assert np.allclose(n1, n0 @ moving.R.T, rtol=0, atol=1e-12)
+
+
+def test_motion_file_keyframes_the_bodies_it_names(tmp_path):
+    path = tmp_path / "motion.json"
+    path.write_text(json.dumps({"bodies": [{"body": 1, "pivot": [0, 0, 0], "keyframes": [
+        {"t": 0}, {"t": 2, "translation": [0, 0.02, 0], "rotation": [0, 0, 90]}]}]}))
+    bodies = (Sphere(np.zeros(3), 0.01), Sphere(np.array([0.01, 0, 0]), 0.01))
+    moved = load_motions(str(path), bodies)
+    assert moved[0] is bodies[0]
+    assert np.allclose(moved[1].at(2.0).body.centre, [0, 0.03, 0], atol=1e-15)
+    path.write_text(json.dumps({"bodies": [{"body": 5, "keyframes": [{"t": 0}]}]}))
+    with pytest.raises(ValueError, match="there are 2 bodies"):
+        load_motions(str(path), bodies)
+    path.write_text(json.dumps({"bodies": [{"keyframes": []}]}))
+    with pytest.raises(ValueError, match="expected"):
+        load_motions(str(path), bodies)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.5])
+def test_a_floor_moving_at_constant_velocity_carries_a_resting_yarn(mu):
+    """A straight free yarn resting on a floor that slides along x at V =
+    1 cm/s (the floor's shape does not change: only friction knows it
+    moves), backward Euler 0.1 s: with μ = 0.5 friction accelerates the
+    yarn at μg until it moves with the floor, so it travels V t − V²/(2μg)
+    (measured within 0.2 % of it); without friction it stays."""
+    from solvers.integrators import BackwardEuler
+
+    r, V, t, steps = 5e-4, 0.01, 0.1, 100
+    s = np.linspace(-0.01, 0.01, 12)
+    X = (s[:, None] * np.array([0.0, 0.0, 1.0]) + [0.0, 1.099 * r, 0.0])[None]
+    floor = Kinematic(Plane(np.zeros(3), np.array([0.0, 1.0, 0.0])),
+                      Motion([0.0, 1.0], [[0, 0, 0], [V, 0, 0]]))
+    fab = Fabric(X=X, radius=r, friction=mu, bodies=(floor,))
+    model = FullModel(SELF, fab, Material(EA=10.0, EI=1e-6, rho=1e-3))
+    _, x, _ = run(model, BackwardEuler, t / steps, steps)
+    moved = (x.getArray().reshape(-1, 3) - X[0]).mean(axis=0)
+    if mu:
+        assert moved[0] == pytest.approx(V * t - V * V / (2 * mu * 9.81), rel=0.01)
+    else:
+        assert abs(moved[0]) < 1e-9
+    assert abs(moved[1]) < 0.01 * r
+    model.destroy()
+
+
+def test_carried_friction_forces_and_tangent_match_finite_differences():
+    """With a body that moves and turns over the step, E_c + D (the
+    reference carried by the body) is one potential: its gradient and
+    Hessian against central differences."""
+    fab = jersey(2, 2)
+    low = fab.X[..., 1].min()
+    fab.bodies = (Kinematic(Capsule(np.array([-0.01, low - 0.002, 0.0]),
+                                    np.array([0.02, low - 0.002, 0.0]), 0.002),
+                            Motion([0.0, 0.1], [[0, 0, 0], [0.002, 0.0, 0.001]],
+                                   np.radians([[0, 0, 0], [0, 5, 0]]),
+                                   pivot=[0.005, low, 0.0])),)
+    fab.friction = 0.4
+    model = FullModel(SELF, fab, Material())
+    b = model.barrier
+    x0 = model.yarn_points(model.rest_state()).copy()
+    x0[:, 1] -= 0.1 * b.gap                       # every low point in contact
+    b.lag(x0, 0.0)
+    b.step_to(0.0, 0.01)
+    assert len(b.lagged[0]) > 0
+    rng = np.random.default_rng(3)
+    dP, gd, Kd, fd = barrier_differences(model, x0 + 1e-5 * rng.standard_normal(
+        x0.shape), rng)
+    assert dP == pytest.approx(gd, rel=1e-5)
+    assert np.allclose(Kd, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    model.destroy()
