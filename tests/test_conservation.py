@@ -19,7 +19,7 @@ serial = pytest.mark.skipif(COMM.size > 1, reason="a serial system: once is enou
 def pendulum(damping=0.0):
     """A yarn of 5 cm pinned at one end, released as an arc: it swings under
     gravity with a period of 0.39 s."""
-    fab = make_fabric("catenary", length=0.05, span=0.04, nseg=8)
+    fab = make_fabric("catenary", length=0.05, span=0.04, segments=8)
     fab.fixed = (np.zeros(1, int), np.zeros(1))
     return FullModel(SELF, fab, Material(EA=0.5, EI=1e-7, gravity=9.81,
                                          damping=damping))
@@ -130,6 +130,12 @@ class SpringChain:
         return PETSc.Vec().createWithArray(self.X.ravel().copy(), comm=SELF)
 
     rest_state = start_state
+
+    def begin_step(self, x, t=None):
+        """Nothing is lagged and no body moves (the system interface)."""
+
+    def move_bodies(self, t0, t1):
+        """No bodies."""
 
     def constraint_jacobian(self, x):
         return self.C

@@ -26,7 +26,7 @@ def test_cantilever_tip_converges_in_segments():
     the quartic small-deflection line nearly exactly, so round-off enters)."""
     tips = []
     for n in (10, 20, 40, 80):
-        fab = make_fabric("cantilever", length=0.1, nseg=n)
+        fab = make_fabric("cantilever", length=0.1, segments=n)
         model = FullModel(SELF, fab, Material(rho=3e-3, EA=1e3, EI=1e-4))
         x = model.rest_state()
         StaticSolver(model, steps=1).solve(x)

@@ -17,7 +17,8 @@ from knitfem.contact.gaps import YarnGaps
 from knitfem.knit.pattern import Jersey, jersey_fabric
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# the acceptance checks' reader, in ../shared/checks beside the project (or
+# an independent reader of the same measure, where the steering files lie beside
+# the project (or
 # beside a worktree's parent)
 CHECKER = next((c for c in (os.path.join(up, "shared", "checks", "lib", "yarn_gaps.py")
                             for up in (os.path.dirname(ROOT),

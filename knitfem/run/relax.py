@@ -155,5 +155,6 @@ class RelaxedKnit:
     def apply(self, fabric):
         """The jersey's template ``fabric`` started from this relaxed knit:
         a natural yarn with the relaxed rest lengths and crossings."""
-        return replace(fabric, X=self.rest, start_X=self.positions, natural=True,
+        return replace(fabric, X=np.reshape(self.rest, (-1, 3)),
+                       start_X=np.reshape(self.positions, (-1, 3)), natural=True,
                        contacts=self.contacts, separation=self.separation)
