@@ -459,3 +459,30 @@ def test_sleeve_forearm_turns_and_the_bodies_are_written_as_a_series(tmp_path):
     forearm = data["position"][data["body"] == 1]
     assert t == pytest.approx(0.03)
     assert np.min(np.linalg.norm(forearm - apex, axis=1)) < 1e-12
+
+
+def test_elbow_time_and_collider_motion_move_the_bodies(tmp_path):
+    """-knit_elbow_time: the elbow bends over that time (eased from rest to
+    rest, so half way through it has turned half the angle);
+    -knit_collider_motion: a body's keyframes move it (summary's ``bodies``
+    at the end)."""
+    out = tmp_path / "sleeve"
+    p = knitfem("run", "-knit_scene", "sleeve", "-knit_rows", "4", "-knit_cols", "8",
+                "-knit_model", "reduced", "-knit_friction", "0", "-knit_t_end", "0.03",
+                "-knit_elbow_angle", "30", "-knit_elbow_time", "0.06",
+                "-knit_snapshots", "", "-o", str(out))
+    assert p.returncode == 0, p.stdout + p.stderr
+    fore = json.load(open(out / "summary.json"))["bodies"][1]
+    axis = np.subtract(fore["p1"], fore["p0"])
+    assert np.degrees(np.arctan2(axis[1], axis[2])) == pytest.approx(15, abs=1e-9)
+    motion = tmp_path / "motion.json"
+    motion.write_text(json.dumps({"bodies": [{"body": 0, "keyframes": [
+        {"t": 0}, {"t": 0.01, "translation": [0.01, 0, 0]}]}]}))
+    out = tmp_path / "moved"
+    p = knitfem("run", "-knit_scene", "freefall", "-knit_rows", "2", "-knit_cols", "2",
+                "-knit_gravity", "0", "-knit_collider", "sphere:0,-0.05,0,0.01",
+                "-knit_collider_motion", str(motion), "-knit_model", "reduced",
+                "-knit_t_end", "0.01", "-knit_snapshots", "", "-o", str(out))
+    assert p.returncode == 0, p.stdout + p.stderr
+    sphere = json.load(open(out / "summary.json"))["bodies"][0]
+    assert np.allclose(sphere["centre"], [0.01, -0.05, 0], rtol=0, atol=1e-15)

@@ -50,11 +50,12 @@ def test_gap_equals_the_smallest_over_every_pair(knit, amount):
     misses no pair, and a closed yarn is measured the short way round."""
     fab = jersey_fabric(Jersey(3, 3, knit=knit))
     rng = np.random.default_rng(1)
-    P = fab.open_splines(fab.X + amount * rng.normal(size=fab.X.shape))
-    rest = io.centrelines(fab.open_splines(fab.X))
+    P = fab.curves(fab.X + amount * rng.normal(size=fab.X.shape))
+    rest = io.centrelines(fab.curves(fab.X))
     pts = io.centrelines(P)
     gaps = YarnGaps(rest, fab.radius)
-    expected = every_pair(rest, fab.radius), every_pair(pts, fab.radius)
+    by_yarn = [S.points.reshape(S.nyarn, -1, 3) for S in (rest, pts)]  # one length
+    expected = tuple(every_pair(S, fab.radius) for S in by_yarn)
     assert (gaps.frame(rest), gaps.add(0.5, pts)) == expected
     assert expected[1] < 1.0 or not amount      # shaken, pieces overlap
     assert gaps.record() == dict(min_yarn_gap=expected[1], min_yarn_gap_time_s=0.5)
