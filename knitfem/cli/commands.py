@@ -580,8 +580,6 @@ def run(comm):
                         f"{sampling_note(system)}, {n} coordinates "
                         f"+ {k} constraints (contacts, fixed points) = {n + k} "
                         f"unknowns, {comm.size} rank(s)")
-        if short:
-            PETSc.Sys.Print(short)
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):
@@ -589,6 +587,8 @@ def run(comm):
             if integrator.name == "symplectic" and not unstable:
                 explicit_step_fits(system, integrator.dt)
             adapt = adaptation_from_options(opts, system)
+        if short:                        # once nothing can refuse the run
+            PETSc.Sys.Print(short)
         lod = getattr(getattr(system, "embedding", None), "volume", None)
         problem = dict(scene.problem(jersey), rho=material.rho, EA=material.EA,
                        EI=material.EI, gravity=material.gravity,
