@@ -55,7 +55,7 @@ def rest_from_options(opts, jersey):
                           "FILE, the relaxed.h5 of knitfem relax (a naturally "
                           "straight yarn in equilibrium), or template (the "
                           "stress-free loops of the paper)")
-    if path != "template":
+    if path != "template" and not opts.helping():
         try:
             jersey.rest = RelaxedKnit.load(path)
             jersey.rest.check(jersey)

@@ -159,13 +159,20 @@ class KnitOptions:
         KnitOptions.declared.add("o")
         return PETSc.Options().getString("o", default)
 
+    @staticmethod
+    def helping():
+        """The command only lists its options (-help, or ``declarations``):
+        option values name files that need not exist."""
+        return (KnitOptions.help or KnitOptions.catalogue is not None
+                or PETSc.Options().hasName("help"))
+
     def printHelp(self, title):
         """Under -help, print the declared options (collective), or add them
         to ``catalogue``. True if it did."""
         if KnitOptions.catalogue is not None:
             KnitOptions.catalogue.extend(self.entries)
             return True
-        if KnitOptions.help or PETSc.Options().hasName("help"):
+        if self.helping():
             PETSc.Sys.Print(f"{title} options:\n" + "\n".join(map(str, self.entries)))
             return True
         return False

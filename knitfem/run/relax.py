@@ -126,12 +126,17 @@ class RelaxedKnit:
     @classmethod
     def load(cls, path):
         """Read relaxed.h5; ValueError with what is wrong if it is not one."""
+        import os
+
+        if not os.path.isfile(path):
+            raise ValueError("no such file (knitfem relax -o DIR writes "
+                             "DIR/relaxed.h5)")
         try:
             with h5py.File(path, "r") as f:
                 a = f.attrs
                 if a.get("version") != VERSION:
-                    raise ValueError(f"{path}: not a relaxed knit of this version "
-                                     f"(knitfem relax writes one)")
+                    raise ValueError("not a relaxed knit of this version "
+                                     "(knitfem relax writes one)")
                 return cls(int(a["rows"]), int(a["cols"]), str(a["shape"]),
                            float(a["radius"]), f["rest"][()], f["positions"][()],
                            tuple(f[f"contacts/{n}"][()] for n in
@@ -139,7 +144,7 @@ class RelaxedKnit:
                            float(a["separation"]), float(a["loop_length"]),
                            source=str(path))
         except (OSError, KeyError) as err:
-            raise ValueError(f"{path}: cannot read a relaxed knit ({err})") from None
+            raise ValueError(f"cannot read a relaxed knit ({err})") from None
 
     def check(self, jersey):
         """ValueError unless ``jersey`` is the knit this one relaxed."""
