@@ -301,12 +301,13 @@ def test_signal_during_set_up(tmp_path):
 def test_sigterm_under_mpirun_all_ranks_stop_at_one_step(tmp_path):
     # the explicit integrator keeps the steps short on a loaded machine;
     # mpirun sends SIGCONT, then SIGTERM to every rank, and meanwhile stops
-    # reading their output: few progress lines, or the ranks block on a full
-    # pipe until SIGKILL
+    # reading their output: few progress lines (a 2x2 takes ~1 600 steps a
+    # second, so one line every 200), or the ranks block on a full pipe until
+    # SIGKILL
     with started("-knit_integrator", "symplectic", "-knit_dt", "1e-6", "-knit_EA",
-                 "1", "-knit_t_end", "1", "-knit_output_every", "20", "-o",
+                 "1", "-knit_t_end", "1", "-knit_output_every", "200", "-o",
                  str(tmp_path), mpirun=("mpirun", "-n", "2")) as p:
-        wait_for(tmp_path / "yarns" / "00000040.h5")
+        wait_for(tmp_path / "yarns" / "00000400.h5")
         finish(p, signal.SIGTERM)
     assert "Traceback" not in p.stdout + p.stderr
     rec = json.loads((tmp_path / "summary.json").read_text())
