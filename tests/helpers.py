@@ -195,3 +195,26 @@ def barrier_differences(model, x, rng):
     dP = (total(x + h * d) - total(x - h * d)) / (2 * h)
     fd = (gradient(x + h * d) - gradient(x - h * d)) / (2 * h)
     return dP, np.sum(gradient(x) * d), K @ d.ravel(), fd.ravel()
+
+
+def curvature_and_force(model, x, dx, seed):
+    """With random multipliers μ (``seed``): Σ μ_i ∇²g_i dx, gathered (from
+    the tangent with and without its curvature, K(x, μ, 2) − K(x)), and the
+    constraint force y ↦ C(y)ᵀμ, gathered, to difference."""
+    mu = model.C.createVecLeft()
+    lo, hi = mu.getOwnershipRange()
+    mu.getArray()[:] = np.random.default_rng(seed).standard_normal(mu.getSize())[lo:hi]
+    K0 = model.stiffness(x).copy()
+    H = model.stiffness(x, mu, 2.0).copy()
+    H.axpy(-1.0, K0)
+    Hdx = x.duplicate()
+    H.mult(dx, Hdx)
+    for A in (K0, H):
+        A.destroy()
+
+    def force(y):
+        out = y.duplicate()
+        model.constraint_jacobian(y).multTranspose(mu, out)
+        return gather(COMM, out)
+
+    return gather(COMM, Hdx) / 2.0, force
