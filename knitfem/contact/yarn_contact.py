@@ -153,15 +153,23 @@ class YarnContact:
             (base + (i + shift) // self.run).astype(np.int32))
             for shift in (0, self.run // 2)]
         ya, sa, yb, sb = fabric.contacts
-        keys = [np.zeros(0, np.int64)]
         nv = len(self.sample_yarn)
-        for y1, s1, y2, s2 in zip(ya, sa, yb, sb):
-            a = np.flatnonzero((self.sample_yarn == y1)
-                               & (np.abs(self.sample_param - s1) < window))
-            b = np.flatnonzero((self.sample_yarn == y2)
-                               & (np.abs(self.sample_param - s2) < window))
-            keys.append((np.minimum.outer(a, b) * nv + np.maximum.outer(a, b)).ravel())
-        self.excluded = np.unique(np.concatenate(keys))
+        # samples sorted by (yarn, parameter): a crossing's window on a yarn,
+        # |param − s| < window, is one run of them, found by bisection
+        span = self.sample_param.max(initial=0.0) + 2 * window + 1.0
+        key = self.sample_yarn * span + self.sample_param
+
+        def run(yarn, s):
+            centre = np.asarray(yarn) * span + np.asarray(s)
+            return (np.searchsorted(key, centre - window, side="right"),
+                    np.searchsorted(key, centre + window, side="left"))
+
+        (a0, a1), (b0, b1) = run(ya, sa), run(yb, sb)
+        na, nb = a1 - a0, b1 - b0
+        c = np.repeat(np.arange(len(na)), na * nb)        # every (a, b) pair
+        k = np.arange(len(c)) - np.repeat(np.cumsum(na * nb) - na * nb, na * nb)
+        a, b = a0[c] + k // nb[c], b0[c] + k % nb[c]
+        self.excluded = np.unique(np.minimum(a, b) * nv + np.maximum(a, b))
         lo, hi = np.divmod(self.excluded, nv)
         near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
         return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
