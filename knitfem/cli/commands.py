@@ -175,14 +175,14 @@ def relax(comm):
     from knitfem.knit.pattern import jersey_fabric
     from knitfem.model.full import FullModel
     from knitfem.run.output import OutputDirectory
-    from knitfem.run.relax import (RelaxedKnit, knit_measures, loop_length,
-                                   natural_fabric, yarn_lengths)
+    from knitfem.run.relax import (RelaxedKnit, knit_measures, natural_fabric,
+                                   stitch_length)
     from knitfem.run.simulation import Simulation
 
     opts = KnitOptions()
     jersey = jersey_from_options(opts)
     template = jersey_fabric(jersey)
-    ell0 = loop_length(yarn_lengths(template), np.full(template.nyarn, jersey.cols))
+    ell0 = stitch_length(jersey, template)
     ell = opts.getReal("loop_length", float(f"{ell0:.4g}"), "yarn length a stitch "
                        "[m] (default: the unscaled template's)", positive=True)
     scale = opts.getReals("template_scale", (1.0, 1.0, 1.0), "start from the "

@@ -32,8 +32,9 @@ import numpy as np
 from knitfem.knit.measure import curl, loop_length, munden, spacings
 from knitfem.yarn import bspline
 
-__all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "knit_measures",
-           "loop_length", "stress_free", "VERSION"]
+__all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "stitch_length",
+           "knit_measures",
+           "stress_free", "VERSION"]
 
 VERSION = 1
 """Layout of relaxed.h5."""
@@ -51,13 +52,19 @@ def yarn_lengths(fabric, P=None, nq=8):
                        minlength=fabric.nyarn)
 
 
+def stitch_length(jersey, fabric, P=None):
+    """Yarn length a stitch ℓ [m] of the jersey's ``fabric`` at control points
+    P (default: its rest X)."""
+    return loop_length(yarn_lengths(fabric, P), np.full(fabric.nyarn, jersey.cols))
+
+
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
     ``length`` a stitch (default: the template's): its rest X the template
     scaled uniformly to that length, its start X scaled by ``scale`` along
     the fabric's course, wale and thickness directions about its centroid;
     crossings held 2r apart."""
-    ell = loop_length(yarn_lengths(fabric), np.full(fabric.nyarn, jersey.cols))
+    ell = stitch_length(jersey, fabric)
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
     X = (fabric.X - centre) * ((length or ell) / ell) + centre
@@ -80,7 +87,7 @@ def knit_measures(jersey, fabric, P):
     loop length, course and wale spacings, Munden's constants and the curl
     of each edge (``knit.measure``)."""
     P = np.asarray(P, dtype=float).reshape(-1, 3)
-    ell = loop_length(yarn_lengths(fabric, P), np.full(fabric.nyarn, jersey.cols))
+    ell = stitch_length(jersey, fabric, P)
     yarn = np.repeat(np.arange(fabric.nyarn), jersey.cols)
     cols, b = fabric.point_rows(yarn, np.tile(jersey.heads(0), fabric.nyarn))
     heads = np.einsum("na,nai->ni", b, P[cols]).reshape(fabric.nyarn, jersey.cols, 3)
