@@ -121,3 +121,38 @@ def test_relax_options_take_effect(tmp_path):
     width = np.ptp(template.samples(8).points[:, 0])
     # the start: the template scaled to the loop length, then along the courses
     assert np.ptp(first[:, 0]) == pytest.approx(1.01 * 17 / 16.8172 * width, rel=1e-3)
+
+
+def test_an_interrupted_relaxation_continues_as_it_says(tmp_path):
+    """SIGINT: exit 130, one line with the command that continues, the summary
+    marked interrupted and no relaxed.h5 (an earlier one is removed at the
+    start); that command, run as printed, finishes the relaxation."""
+    import shlex
+    import signal
+    import time
+
+    out = tmp_path / "relax"
+    out.mkdir()
+    (out / "relaxed.h5").write_text("an earlier relaxation's")
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(__file__)))
+    args = ["relax", "-knit_rows", "5", "-knit_cols", "5", "-knit_yarn_contact", "off",
+            "-o", str(out)]
+    p = subprocess.Popen([sys.executable, "-m", "knitfem.cli", *args, "-skip_petscrc"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=env)
+    t0 = time.time()
+    while not (out / "relaxed" / "00000020.h5").exists() and time.time() - t0 < 120:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode == 130, stdout + stderr
+    said = [s for s in stdout.splitlines() if "continue with: " in s]
+    assert len(said) == 1 and not (out / "relaxed.h5").exists()
+    assert json.loads((out / "summary.json").read_text())["status"] == \
+        "interrupted by SIGINT"
+    again = shlex.split(said[0].split("continue with: ")[1])
+    assert again[0] == "knitfem"
+    p = subprocess.run([sys.executable, "-m", "knitfem.cli", *again[1:], "-skip_petscrc"],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert RelaxedKnit.load(str(out / "relaxed.h5")).rows == 5

@@ -199,6 +199,8 @@ def relax(comm):
                         "falls below this [m/s]", positive=True)
     every = opts.getInt("output_every", 10, "steps between progress lines and "
                         "frames of relaxed.xdmf", 1)
+    restart = opts.getString("restart", "", "continue an interrupted relaxation "
+                             "from this HDF5 checkpoint")
     path = opts.getOutput("out/relax")
     if opts.finish("knitfem relax"):
         return
@@ -220,6 +222,9 @@ def relax(comm):
                          out=out, scene="relax", output_every=every,
                          series="relaxed.xdmf", settled=settled, energy_growth=0,
                          view="three_quarter", command=sys.argv)
+        if restart:
+            sim.restart(restart)
+        out.rank0(out.remove, "relaxed.h5")     # an earlier relaxation's
         rec = simulate(sim, t_max, "relax", out)
         if isinstance(rec, int):
             return rec
