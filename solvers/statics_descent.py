@@ -5,8 +5,8 @@ The system's total energy Π(ε) = E(ε) − Q_gᵀε (elastic, barriers and
 gravity) is minimised subject to its constraints g(ε) = 0. Iteration k,
 with K = ∂²E/∂ε² + Σ_i μ_i ∇²g_i and C at ε_k, solves
 
-    [K + σ M  Cᵀ] [δ ]     [Q(ε_k)]
-    [C        0 ] [μ⁺] = − [g(ε_k) ] · (1, −1),
+    [K + σ M  Cᵀ] [δ ]   [ Q(ε_k)]
+    [C        0 ] [μ⁺] = [−g(ε_k)],
 
 i.e. (K + σM) δ + Cᵀμ⁺ = Q = −∇Π and C δ = −g, and moves ε_k + t δ with
 μ ← μ + t (μ⁺ − μ). The shift σ M (M the mass matrix: a pseudo-time step
@@ -19,23 +19,36 @@ direction of the merit
 where K alone is indefinite (a knit far from its rest buckles) or
 singular (a free knit's rigid motions; its courses' hinges). t is the
 largest of t₀, t₀/2, … with Armijo's decrease L(ε + tδ) ≤ L(ε) + 10⁻⁴ t
-dL/dt, t₀ ≤ 1 the system's step filter (``step_fraction``: the yarn
-contact's bound, so that no step brings two yarn surfaces into contact).
-σ is Levenberg–Marquardt's: divided by 4 after a full step, doubled after
-a cut one, multiplied by 10 (the step taken again) when δ is no descent
-direction or no t in 10 halvings decreases L; it never falls below
-``floor`` = 10⁻¹² max diag K / max diag M, which holds the rigid motions
-and leaves the last iterations Newton's (quadratic).
+dL/dt at a state where no two yarn surfaces are closer than 2r
+(``min_yarn_distance``), from t₀ = min(1, r / max_i |δ_i − δ̄|): a step
+that moves no control point by more than r relative to the mean cannot
+carry one yarn through another unseen (``_reach``). The yarn contact's own
+step filter (``step_fraction``, a conservative bound on every pair's
+relative move) was tried as t₀ first: it counts a slide of two touching
+yarns along each other as an approach and cut the steps of the relaxed
+5×5 jersey to t ≈ 0.01–0.1 (1 000 iterations a load step, σ never at its
+floor). σ is Levenberg–Marquardt's: divided by 4 after a step taken at t₀,
+doubled after a cut one, multiplied by 10 (the step taken again) when δ is
+no descent direction or no t in 10 halvings decreases L; it never falls
+below ``floor`` = 10⁻¹² max diag K / max diag M, which holds the rigid
+motions and leaves the last iterations Newton's.
 
 Why not the residual |F|: after a bending step the residual of a stiff
 yarn is dominated by its membrane part, EA ≈ 10⁴ times its bending scale,
 so a line search or a pseudo-time schedule on |F| (``statics``) crawls or
-stalls; the energy weighs each part by what it costs. Near the minimum L
-changes by less than its round-off; a step then counts as a decrease when
-L grew by no more than 10⁻¹³ |Π|.
+stalls (``statics.StaticSolver`` on the 5×5 natural jersey: |F| still
+0.05 after 500 iterations); the energy weighs each part by what it costs.
+Near the minimum L changes by less than its round-off; a step then counts
+as a decrease when L grew by no more than 10⁻¹³ |L|.
 
-It stops when a full step with σ at its floor moves no yarn control point
-by more than ``tol``; g is then below 10⁻¹² of a yarn radius.
+It stops when the residual force over the lumped mass, max_i |Q − Cᵀμ|_i /
+m_i, is below a given acceleration and |g| below 10⁻⁹ yarn radii. The last
+iterations converge linearly (about 0.7 an iteration on the 5×5 jersey):
+the barrier's pair Hessians are projected to positive semi-definite.
+
+``guide_to`` adds a spring ½ c |ε − ε̂|²_M to Π (its Hessian c M joins
+the shift), to steer the path of a minimisation that has more than one
+minimum (``run.relax.Relaxation``).
 """
 
 import numpy as np
@@ -70,6 +83,7 @@ class ConstrainedDescent:
         self.g, self.gt = system.C.createVecLeft(), system.C.createVecLeft()
         self.mu = system.C.createVecLeft()
         self.lumped = system.M.getRowSum()
+        self.Mx, self.target, self.guide = system.M.createVecLeft(), None, 0.0
         self.ksp = self.saddle = self.A = None
         self._layout(system.start_state())
         self.rhs, self.z = self.saddle.createVec(), self.saddle.createVec()
@@ -96,7 +110,8 @@ class ConstrainedDescent:
         """δ and μ⁺ for the shift σ (into self.z) from the residual in
         self.rhs; the matrix K + σM (K the tangent, kept)."""
         K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        self.A.axpy(sigma, self.system.M, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        self.A.axpy(sigma + self.guide, self.system.M,
+                    PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         self.saddle.update(constraints=True)
         try:
             solve_saddle(lambda: self.ksp.solve(self.rhs, self.z), self.ksp)
@@ -111,14 +126,28 @@ class ConstrainedDescent:
         s = self.system
         s.forces(x, self.zero, self.Q)
         s.constraint_residual(x, self.g)
+        if self.guide:
+            self.tmp.waxpy(-1.0, self.target, x)
+            s.M.mult(self.tmp, self.Mx)
+            self.Q.axpy(-self.guide, self.Mx)
 
     def _merit(self, x, mu):
-        """L = E − Q_gᵀε + μᵀg at x (collective)."""
+        """L = E − Q_gᵀε + ½ c |ε − ε̂|²_M + μᵀg at x (collective)."""
         s = self.system
         s.constraint_residual(x, self.gt)
-        return s.elastic_energy(x) - s.Qg.dot(x) + self.gt.dot(mu)
+        L = s.elastic_energy(x) - s.Qg.dot(x) + self.gt.dot(mu)
+        if self.guide:
+            self.tmp.waxpy(-1.0, self.target, x)
+            s.M.mult(self.tmp, self.Mx)
+            L += 0.5 * self.guide * self.tmp.dot(self.Mx)
+        return L
 
     # -- the iteration -------------------------------------------------------
+    def guide_to(self, target, c):
+        """Add ½ c |ε − ε̂|²_M to Π (c [1/s²] ≥ 0, ε̂ = ``target``, a Vec kept):
+        a spring to a given shape, to steer the path to a minimum."""
+        self.target, self.guide = target, float(c)
+
     def minimize(self, x, accel, max_it=2000):
         """Move x (a Vec) to the constrained minimum, to a residual whose
         acceleration max_i |Q − Cᵀμ|_i / m_i is at most ``accel`` [m/s²]
@@ -225,5 +254,5 @@ class ConstrainedDescent:
 
     def destroy(self):
         for obj in (self.ksp, self.saddle, self.A, self.x, self.Q, self.zero,
-                    self.tmp, self.g, self.gt, self.mu, self.lumped, self.rhs, self.z):
+                    self.tmp, self.g, self.gt, self.mu, self.Mx, self.lumped, self.rhs, self.z):
             obj.destroy()

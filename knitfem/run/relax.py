@@ -88,6 +88,7 @@ class Ramp:
         self.el, self.sets = el, []
         start = np.linalg.norm(el.tangents(system.yarn_points(x0))[:, :, 0], axis=-1)
         self.jac = (start, el.jac.copy())
+        self.end = el.Xp2.copy(), el.W.copy()
         cons = system.constraints
         for part in (cons.local, cons.reaching):
             g = part.values(X0[part.cols])
@@ -104,8 +105,7 @@ class Ramp:
         el = self.el
         jac = (1 - lam) * self.jac[0] + lam * self.jac[1]
         el.jac[:] = jac
-        el.Xp2[:] = jac * jac
-        el.W[:] = el.weights * jac
+        el.Xp2[:], el.W[:] = (jac * jac, el.weights * jac) if lam < 1 else self.end
         for target, start, end in self.sets:
             target[:] = (1 - lam) * start + lam * end
 
@@ -116,7 +116,13 @@ class Relaxation:
     rest quantities to λ = t (``Ramp``) and the knit to its constrained
     energy minimum there (``solvers.statics_descent``), to a residual
     acceleration of ``accel`` [m/s²] at λ = 1 and of 10³ accel before. The
-    velocity stays zero."""
+    steps before the last add a spring ½ c_k |ε − X|²_M to the natural rest
+    X (the template at the loop length asked), c_k = c₀ 100^(−k) for step
+    k = 0, 1, …, c₀ = 0.1 EI / (ρ r⁴) (the bending stiffness of a wavelength
+    of a few yarn radii): a start far from X (a stretched template) is first
+    drawn to X's shape and then let go, so every start takes the path the
+    template's own takes, and ends in the same minimum (the yarn contact
+    makes more than one). The velocity stays zero."""
 
     name = "relax"
 
@@ -128,6 +134,9 @@ class Relaxation:
         self.ramp = Ramp(system, x0)
         x0.destroy()
         self.solver = ConstrainedDescent(system)
+        m, r = system.material, system.fabric.radius
+        self.guide = 0.1 * m.EI / (m.rho * r**4)
+        self.target = system.rest_state()
 
     def step(self, t, x, v, t_stop=None):
         """Load step from t to min(t + dt, t_stop, 1); the stats of
@@ -140,6 +149,8 @@ class Relaxation:
         if 1.0 - lam < 1e-9:
             lam = 1.0
         self.ramp.set(lam)
+        self.solver.guide_to(self.target, 0.0 if lam == 1.0 else
+                             self.guide * 100.0 ** (-round(t / self.dt)))
         before = dict(self.solver.stats)
         self.solver.minimize(x, self.accel if lam == 1.0 else 1e3 * self.accel)
         v.zeroEntries()
