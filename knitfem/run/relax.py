@@ -99,13 +99,15 @@ class Ramp:
                 d = part.delta
                 self.sets.append((d, np.sqrt(2 * d * g[:, 0] + d * d), d.copy()))
 
-    def set(self, lam):
-        """Rest quantities at λ (written into the model's arrays in place:
-        the kernels and constraints read them there)."""
+    def set(self, lam, lengths=None):
+        """Rest quantities at λ, the line elements at ``lengths`` (default λ)
+        (written into the model's arrays in place: the kernels and
+        constraints read them there)."""
         el = self.el
-        jac = (1 - lam) * self.jac[0] + lam * self.jac[1]
+        mu = lam if lengths is None else lengths
+        jac = (1 - mu) * self.jac[0] + mu * self.jac[1]
         el.jac[:] = jac
-        el.Xp2[:], el.W[:] = (jac * jac, el.weights * jac) if lam < 1 else self.end
+        el.Xp2[:], el.W[:] = (jac * jac, el.weights * jac) if mu < 1 else self.end
         for target, start, end in self.sets:
             target[:] = (1 - lam) * start + lam * end
 
@@ -148,7 +150,7 @@ class Relaxation:
         lam = min(t + self.dt, t_stop, 1.0)
         if 1.0 - lam < 1e-9:
             lam = 1.0
-        self.ramp.set(lam)
+        self.ramp.set(lam, lengths=1.0)
         self.solver.guide_to(self.target, 0.0 if lam == 1.0 else
                              self.guide * 100.0 ** (-round(t / self.dt)))
         before = dict(self.solver.stats)
