@@ -105,6 +105,11 @@ class ConstrainedDescent:
         self.saddle = SaddlePoint(self.A, s.constraint_jacobian(x), prefix=self.prefix,
                                   blocks=getattr(s, "yarn_blocks", None))
         self.ksp = saddle_ksp(self.saddle, self.prefix)
+        if self.saddle.delta and not PETSc.Options(self.prefix).hasName("ksp_type"):
+            # the regularised factorisation preconditions K itself: the step
+            # must solve K (C δ = −g) for dL/dt to be the descent it says
+            self.ksp.setType("gmres")
+            self.ksp.setTolerances(rtol=1e-12, atol=0.0, max_it=30)
 
     def _solve(self, K, sigma):
         """δ and μ⁺ for the shift σ (into self.z) from the residual in
