@@ -73,25 +73,30 @@ def test_crossing_conditions_hold_after_every_evaluation(model):
         assert crossing_residual(asm.reaching, P[asm.ghost_r]) < 1e-18
 
 
-def test_gradient_and_hessian_against_finite_differences(model):
-    """C = ∂g/∂ε and Σ μ_i ∇²g_i = ∂(Cᵀμ)/∂ε by central differences whose
-    states re-solve s*: errors fall as h² (measured 1.5e-6 and 2e-5 relative
-    at h = 1e-2, 100 × less at 1e-3)."""
-    x = state(model, perturbed(model, 4, 2e-5))
-    dx = state(model, perturbed(model, 5, 1e-5))
+def finite_difference_errors(model, x, seed):
+    """Relative errors of C dx and Σ μ_i ∇²g_i dx against central
+    differences whose states re-solve s*, at h = 1e-2 and 1e-3."""
+    dx = state(model, perturbed(model, seed, 1e-5))
     dx.axpy(-1.0, model.rest_state())
     Cdx = model.C.createVecLeft()
     model.constraint_jacobian(x).mult(dx, Cdx)
     exact = gather(COMM, Cdx)
-    hess, force = curvature_and_force(model, x, dx, 6)
-
+    hess, force = curvature_and_force(model, x, dx, seed + 1)
     errors = []
     for h in (1e-2, 1e-3):
         fd = central(lambda y: residual(model, y), x, dx, h)
         fdH = central(force, x, dx, h)
         errors.append((np.abs(fd - exact).max() / np.abs(exact).max(),
                        np.abs(fdH - hess).max() / np.abs(hess).max()))
-    (g1, h1), (g2, h2) = errors
+    return errors
+
+
+def test_gradient_and_hessian_against_finite_differences(model):
+    """C = ∂g/∂ε and Σ μ_i ∇²g_i = ∂(Cᵀμ)/∂ε by central differences whose
+    states re-solve s*: errors fall as h² (measured 1.5e-6 and 2e-5 relative
+    at h = 1e-2, 100 × less at 1e-3)."""
+    x = state(model, perturbed(model, 4, 2e-5))
+    (g1, h1), (g2, h2) = finite_difference_errors(model, x, 5)
     assert g1 < 1e-5 and h1 < 1e-4
     assert g2 < 3e-2 * g1 + 1e-9 and h2 < 3e-2 * h1 + 1e-9       # O(h²)
 
@@ -122,20 +127,23 @@ def two_straight_yarns(delta=1e-3, spacing=1e-3, ncp=16):
     return Fabric(X, 2.5e-4, contacts=(np.array([0]), mid, np.array([1]), mid))
 
 
-def test_yarn_pulled_lengthwise_slides_through_a_crossing():
+@pytest.mark.parametrize("v,n,ncp", [(0.05, 20, 16), (0.5, 30, 40)])
+def test_yarn_pulled_lengthwise_slides_through_a_crossing(v, n, ncp):
     """Yarn 0, straight, set moving along itself glides through the crossing
     untouched: no force, uniform motion, kinetic energy kept, the crossing
-    held, slid by v t."""
-    fab = two_straight_yarns()
+    held, slid by v t. Over 15 segments (three windows of 5) the windows
+    move to follow it and C's pattern is laid out again."""
+    fab = two_straight_yarns(ncp=ncp)
     m = FullModel(PETSc.COMM_SELF, fab, Material(gravity=0.0), contacts="sliding")
-    v, dt, n = 0.05, 1e-3, 20
+    rest = m.sliding.first.copy()
+    dt = 1e-3                                        # 1 mm segments
     shape = (2, -1, 3)                               # two yarns of one length
     v0 = np.zeros(fab.X.shape).reshape(shape)
     v0[0, :, 0] = v
     _, x, vel = run(m, BackwardEuler, dt, n, v0.ravel())
     moved = (x.getArray().reshape(fab.X.shape) - fab.X).reshape(shape)
-    # uniform motion and kinetic energy kept to round-off (measured 1e-18 m,
-    # 1.5e-15 m/s, 0 relative)
+    # uniform motion and kinetic energy kept to round-off (measured 1.4e-17 m,
+    # 4.6e-15 m/s, 8.9e-16 relative)
     assert np.abs(moved[0, :, 0] - v * n * dt).max() < 1e-15
     assert np.abs(moved[0, :, 1:]).max() < 1e-15 and np.abs(moved[1]).max() < 1e-15
     assert np.abs(vel.getArray().reshape(shape) - v0).max() < 1e-12
@@ -144,7 +152,52 @@ def test_yarn_pulled_lengthwise_slides_through_a_crossing():
     g = m.C.createVecLeft()
     m.constraint_residual(x, g)
     assert np.abs(g.getArray()).max() < 1e-15
-    assert abs(m.slide_report(x)["max_slide_m"] - v * n * dt) < 1e-12
+    report = m.slide_report(x)
+    assert abs(report["max_slide_m"] - v * n * dt) < 1e-12
+    # a move at least every two segments slid, yarn 1's window kept, yarn
+    # 0's centred on s before the last step
+    segments = v * n * dt / 1e-3
+    assert report["slide_window_moves"] >= int(segments) // 2
+    c = m.constraints.local
+    assert c.first[0, 1] == rest[0, 1]
+    assert abs(c.s[0, 0] - c.first[0, 0] - 2.5) <= sliding.RECENTRE + v * dt / 1e-3 + 1e-9
+    m.destroy()
+
+
+def shifted_windows(m, by):
+    """Window starts moved by ``by`` segments where the crossing's segment
+    stays inside (and an open yarn's window on the yarn)."""
+    c = m.sliding
+    k = np.floor(c.s).astype(int)
+    first = c.first + by
+    ok = (k - first >= 0) & (k - first <= c.width - 4) & (first >= 0) \
+        & (first <= c.nseg - c.width + 3)
+    return np.where(ok, first, c.first)
+
+
+def test_moved_windows_keep_g_and_stay_exact():
+    """Windows moved at a state keep g there, rigid motions still keep it,
+    and C and Σμ∇²g pass the finite-difference check on the new pattern."""
+    m = FullModel(COMM, jersey(4, 3, hold="top"), Material(), contacts="sliding")
+    x = state(m, perturbed(m, 11, 2e-5))
+    g0 = residual(m, x)
+    m.constraints.commit(x)
+    before = m.sliding.cols.copy()
+    assert m.move_windows(x, shifted_windows(m, -1)) > 0 and m.window_moves == 1
+    assert (m.sliding.cols != before).any()
+    assert m.begin_step(x)                           # a new Newton matrix
+    # s* and g unchanged (measured 0 m)
+    assert np.abs(residual(m, x) - g0).max() < 1e-19
+    contact = np.repeat(m.constraint_kind, m.constraints.nrows) == "contact"
+    X = perturbed(m, 11, 2e-5)
+    centre = X.mean(axis=0)
+    Y = (X - centre) @ rotation((30, -60, 120)).T + centre + 0.1
+    # measured 2.3e-17 m
+    assert np.abs(residual(m, state(m, Y))[contact] - g0[contact]).max() < 2e-16
+    (g1, h1), (g2, h2) = finite_difference_errors(m, x, 12)
+    # measured 4.6e-8 and 8.1e-8 at h = 1e-2, O(h²)
+    assert g1 < 5e-7 and h1 < 1e-6
+    assert g2 < 3e-2 * g1 + 1e-9 and h2 < 3e-2 * h1 + 1e-9
     m.destroy()
 
 
@@ -159,11 +212,17 @@ def test_fixed_crossing_drags_the_other_yarn():
     m.destroy()
 
 
-def test_parallel_equals_serial():
-    """g, C and K + Σμ∇²g off the rest under mpirun equal one rank's."""
+@pytest.mark.parametrize("moved", [False, True])
+def test_parallel_equals_serial(moved):
+    """g, C and K + Σμ∇²g off the rest under mpirun equal one rank's, with
+    the windows where they started or moved."""
     fab = jersey(5, 3, hold="top")
     par, ser = (FullModel(comm, fab, Material(), contacts="sliding")
                 for comm in (PETSc.COMM_WORLD, PETSc.COMM_SELF))
+    for m in (par, ser) if moved else ():
+        x = m.start_state()
+        m.constraints.commit(x)
+        assert m.move_windows(x, shifted_windows(m, -1)) > 0
     rng = np.random.default_rng(8)
     full = 4e-2 * fab.radius * rng.standard_normal(3 * par.layout.ncp)
     nrow = par.C.getSize()[0]

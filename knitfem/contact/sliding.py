@@ -43,11 +43,18 @@ At the two straight yarns' crossing r·t = 0, so η = 0 and the force is
 w_k r/δ, along the normal.
 
 Weights live on a window of 4 + 2m control points a yarn (m the margin in
-segments either side of the rest segment), so that C(ε) keeps one sparsity
+segments either side of the segment of s), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
-its window is refused (``FullModel.begin_step``), with the advice to widen
-the margin. The reference tangents follow a crossing that slides along a
+its window is refused (``FullModel.tunnelled``: a smaller step is tried).
+Between steps a window whose s has strayed more than ``RECENTRE`` segments
+from its middle moves along its yarn to be centred on s again
+(``centred``, ``move_windows``; round a closed yarn, up to an open yarn's
+ends), and C's pattern and the tangent's are laid out again: s, s* and g do
+not change, the reference tangents are taken again at s (below), and the
+slide so far is banked (``slid``, the arc length from rest to ``base``,
+where the window last moved), so that ``slide_lengths`` measures from rest
+however far the crossing went. The reference tangents follow a crossing that slides along a
 loop: at an accepted state where s* is more than half a segment from where
 they were taken, they are taken again there, T_j = t_j − β_j r with
 β_j = r·t_j / r·r, so that r·T = 0 still holds at that state: s* and g do
@@ -69,6 +76,7 @@ NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
 REANCHOR = 0.5            # slide [segments] after which the reference tangents move
+RECENTRE = 1.0             # s's distance [segments] from its window's middle that moves it
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -92,12 +100,15 @@ class SlidingCrossings:
     owner (n,) the yarn of P_a; cols (n, 2W) global control points of the two
     windows (W = 4 + 2 margin, yarn a's then yarn b's); first (n, 2) the
     first segment of each window; nseg (n, 2) and closed (n, 2) the two
-    yarns' segments and closure; delta (n,) the rest separation; s (n, 2) the committed sliding
+    yarns' segments and closure, start (n, 2) their first control points;
+    delta (n,) the rest separation; s (n, 2) the committed sliding
     parameters (state: where every evaluation's search for s* starts
     from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
     of the windows (arc lengths); sT (n, 2) the parameters σ where the
-    reference tangents were taken, chi (n, 2, 2W) their weights. ``s_star``
-    holds the last evaluation's s*.
+    reference tangents were taken, chi (n, 2, 2W) their weights; base (n, 2)
+    the s where the windows last moved and slid (n, 2) the signed arc length
+    along the rest yarns from s0 to base. ``s_star`` holds the last
+    evaluation's s*.
     """
 
     owner: np.ndarray
@@ -111,6 +122,9 @@ class SlidingCrossings:
     chi: np.ndarray
     nseg: np.ndarray
     closed: np.ndarray
+    start: np.ndarray
+    base: np.ndarray
+    slid: np.ndarray
 
     rows = 1                      # scalar rows a crossing
     kind = "sliding"
@@ -293,17 +307,73 @@ class SlidingCrossings:
         return H + LS + LS.transpose(0, 2, 1) + S.transpose(0, 2, 1) @ L_ss @ S
 
     # -- how far the crossings slid ------------------------------------------------
-    def slide_lengths(self, nq=8):
-        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
+    def _arcs(self, s, nq=8):
+        """Signed arc length (n, 2) along each rest yarn from s0 to s (inside
+        the windows): slid + ∫_base^s |X'(σ)| dσ (nq-point Gauss)."""
         x, wq = bspline.gauss(nq)
-        ds = self._along(self.s_star - self.s0)
+        ds = self._along(s - self.base)
         speed = np.zeros(self.s.shape)
         Xw = self.X.reshape(self.count, 2, self.width, 3)
         for xq, w in zip(x, wq):
-            tq = np.einsum("njk,njkd->njd", self.weights(self.s0 + xq * ds, (1,))[0],
+            tq = np.einsum("njk,njkd->njd", self.weights(self.base + xq * ds, (1,))[0],
                            Xw)
             speed += w * np.linalg.norm(tq, axis=-1)
-        return np.abs(ds) * speed
+        return self.slid + ds * speed
+
+    def slide_lengths(self):
+        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
+        return np.abs(self._arcs(self.s_star))
+
+    # -- windows that follow the crossings -------------------------------------------
+    def centred(self):
+        """First segments (n, 2) of the windows: centred on the committed s
+        (its segment the m-th) where s lies more than ``RECENTRE`` segments
+        from its window's middle, as they are elsewhere. An open yarn's
+        window stops at the yarn's ends."""
+        m = (self.width - 4) // 2
+        far = np.abs(self._along(self.s - self.first) - (m + 0.5)) > RECENTRE
+        k, _ = bspline.locate(self.s, self.nseg, self.closed)
+        centre = np.where(self.closed, np.mod(k - m, self.nseg),
+                          np.clip(k - m, 0, self.nseg - self.width + 3))
+        return np.where(far, centre, self.first)
+
+    def move_windows(self, first, X, P):
+        """Move the windows to start at the segments ``first`` (n, 2), for
+        the rest control points X and the points P (N, 3) of every yarn.
+        A crossing whose window moved keeps s and s* (g does not change): its
+        slide so far is banked (slid ← arc length from s0 to s, base ← s)
+        and its reference tangents are taken at s on the new windows
+        (``anchor``). Returns the indices of the crossings that moved."""
+        moved = np.flatnonzero((first != self.first).any(axis=1))
+        if not moved.size:
+            return moved
+        self.slid[moved] = self._arcs(self.s)[moved]
+        self.base[moved] = self.s[moved]
+        self.first[moved] = first[moved]
+        self.cols[moved] = window_cols(self.start, first, self.width, self.nseg,
+                                         self.closed)[moved]
+        self.X[moved] = X[self.cols[moved]]
+        self.s_star, self.solved_at = self.s.copy(), None
+        self.anchor(P[self.cols], moved)
+        return moved
+
+    def state(self):
+        """The committed state (n, 10 + 4W): s, σ, first, base, slid, χ."""
+        return np.concatenate([self.s, self.sT, self.first, self.base, self.slid,
+                               self.chi.reshape(self.count, -1)], axis=1)
+
+    def set_state(self, state, X):
+        """Commit a ``state`` (windows, where they moved, with the rest
+        control points X (N, 3) of every yarn)."""
+        state = np.asarray(state, dtype=float)
+        self.s, self.sT = state[:, 0:2].copy(), state[:, 2:4].copy()
+        self.first = np.rint(state[:, 4:6]).astype(self.first.dtype)
+        self.base, self.slid = state[:, 6:8].copy(), state[:, 8:10].copy()
+        self.chi = state[:, 10:].reshape(self.count, 2, -1).copy()
+        self.cols = window_cols(self.start, self.first, self.width, self.nseg,
+                                self.closed)
+        self.X = X[self.cols]
+        self.s_star, self.solved_at = self.s.copy(), None
 
 
 class BlockCurvature:
@@ -327,13 +397,23 @@ class BlockCurvature:
         values += self.S @ ((weight * np.asarray(mu))[:, None, None] * H).ravel()
 
 
+def window_cols(start, first, W, nseg, closed):
+    """Global control points (n, 2W) of the windows of W control points
+    starting at segments ``first`` (n, 2) of yarns whose first control
+    points are ``start`` (n, 2) (modulo a closed yarn's control points)."""
+    span = first[..., None] + np.arange(W)
+    ncp = np.where(closed, nseg, nseg + 3)[..., None]
+    span = np.where(closed[..., None], np.mod(span, ncp), span)
+    return (start[..., None] + span).reshape(len(first), 2 * W)
+
+
 def crossings(fabric, margin=2):
     """Sliding crossings of a ``Fabric``'s contacts, each starting at its
     pattern parameters (the closest approach at rest), with windows of
     margin segments either side."""
     ya, sa, yb, sb = fabric.contacts
     yarn = np.stack([ya, yb], axis=1).astype(np.int64)
-    ncp, nseg = fabric.yarn_ncp[yarn], fabric.yarn_nseg[yarn]
+    nseg = fabric.yarn_nseg[yarn]
     closed = fabric.closed[yarn]
     W = 4 + 2 * margin
     short = ~closed & (nseg < W - 3)
@@ -344,12 +424,12 @@ def crossings(fabric, margin=2):
     k, _ = bspline.locate(s0, nseg, closed)
     first = np.where(closed, np.mod(k - margin, nseg),
                      np.clip(k - margin, 0, nseg - W + 3))
-    span = first[..., None] + np.arange(W)
-    span = np.where(closed[..., None], np.mod(span, ncp[..., None]), span)
-    cols = (fabric.yarn_start[yarn][..., None] + span).reshape(len(s0), 2 * W)
+    start = fabric.yarn_start[yarn]
+    cols = window_cols(start, first, W, nseg, closed)
     X = fabric.X[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
-                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed)
+                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed,
+                         start, s0.copy(), np.zeros(s0.shape))
     c.anchor(X, np.arange(len(s0)))
     r = c._geometry(X, c.s0)[0]
     c.delta = np.linalg.norm(r, axis=1)
