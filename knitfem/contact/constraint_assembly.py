@@ -165,7 +165,9 @@ class ConstraintAssembly:
         lam.destroy()
         self.rows, self.contact_kind = nr, contacts.kind
         self.local = contacts.select(self.mine)          # rows of this rank
-        self.reaching = contacts.select(self.touching)   # into its tangent rows
+        # into its tangent rows: the same crossings (one rank), or more
+        self.reaching = self.local if np.array_equal(self.touching, self.mine) \
+            else contacts.select(self.touching)
         self.nonlinear = contacts.count > 0               # C depends on ε
         self.B = None          # curvature_operator in the owning model's tangent
         self.reanchored = 0    # sliding crossings' reference tangents moved
@@ -239,7 +241,8 @@ class ConstraintAssembly:
         P = self._points(x)
         loc = self.local
         self.reanchored += loc.commit(P[self.ghost_c])
-        self.reaching.commit(P[self.ghost_r])
+        if self.reaching is not loc:
+            self.reaching.commit(P[self.ghost_r])
         move = (loc.centred() != loc.first).any(axis=1)
         stuck = np.zeros(loc.count, bool)
         stuck[loc.at_edge()] = True

@@ -89,6 +89,14 @@ def inverse2(A):
     return inv / (A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])[:, None, None]
 
 
+def kron_eye(v):
+    """v ⊗ I₃ (n, 3K, 3) of vectors v (n, K)."""
+    out = np.zeros(v.shape + (3, 3))
+    for q in range(3):
+        out[..., q, q] = v
+    return out.reshape(len(v), -1, 3)
+
+
 class SlidError(KnitError):
     """A crossing slid out of the window of control points of its pattern."""
 
@@ -130,7 +138,7 @@ class SlidingCrossings:
     kind = "sliding"
 
     def __post_init__(self):
-        self.s_star, self.solved_at = self.s.copy(), None
+        self.s_star, self.solved_at, self._terms_at = self.s.copy(), None, None
 
     @property
     def count(self):
@@ -168,19 +176,20 @@ class SlidingCrossings:
           + np.arange(4)] = [bspline.basis(u, d) for d in nu]
         return w
 
-    def _geometry(self, P, s):
+    def _geometry(self, P, s, second=True):
         """r (n, 3), its weights w (n, 2W), r_s (n, 2, 3), the weights of r_s
-        (n, 2, 2W) and r_ss's diagonal (n, 2, 3) at s, for points P (n, 2W, 3)."""
+        (n, 2, 2W) and r_ss's diagonal (n, 2, 3) (None unless ``second``) at
+        s, for points P (n, 2W, 3)."""
         W = self.width
-        b0, b1, b2 = self.weights(s)
+        b = self.weights(s, (0, 1, 2) if second else (0, 1))
         sign = np.array([1.0, -1.0])[None, :, None]
-        w = np.concatenate([b0[:, 0], -b0[:, 1]], axis=1)
+        w = np.concatenate([b[0][:, 0], -b[0][:, 1]], axis=1)
         ws = np.zeros((len(s), 2, 2 * W))
-        ws[:, 0, :W], ws[:, 1, W:] = b1[:, 0], -b1[:, 1]
+        ws[:, 0, :W], ws[:, 1, W:] = b[1][:, 0], -b[1][:, 1]
         Pw = P.reshape(len(s), 2, W, 3)
         r = np.einsum("nk,nkd->nd", w, P)
-        rs = sign * np.einsum("njk,njkd->njd", b1, Pw)
-        rss = sign * np.einsum("njk,njkd->njd", b2, Pw)
+        rs = sign * np.einsum("njk,njkd->njd", b[1], Pw)
+        rss = sign * np.einsum("njk,njkd->njd", b[2], Pw) if second else None
         return r, w, rs, ws, rss
 
     def _chord_weights(self):
@@ -196,7 +205,7 @@ class SlidingCrossings:
         """Reference tangents of the crossings ``which`` at their s:
         T_j = t_j − β_j r, β_j = r·t_j / r·r at the points P, so that r·T = 0
         there and s* at P stays s."""
-        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s)[:4])
+        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s, False)[:4])
         beta = np.einsum("nd,njd->nj", r, rs) / np.einsum("nd,nd->n", r, r)[:, None]
         self.chi[which] = ws - beta[..., None] * w[:, None, :]
         self.sT[which] = self.s[which]
@@ -229,14 +238,14 @@ class SlidingCrossings:
         T = self._chords(P)
         s = self.s.copy()
         for _ in range(NEWTON_STEPS):
-            r, _, rs = self._geometry(P, s)[:3]
+            r, _, rs = self._geometry(P, s, False)[:3]
             c = np.einsum("nd,njd->nj", r, T)
             ds = -np.einsum("nij,nj->ni", inverse2(np.einsum("nid,njd->nji", rs, T)), c)
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
             ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
                 break
-        self.s_star, self.solved_at = s, P.copy()
+        self.s_star, self.solved_at, self._terms_at = s, P.copy(), None
         return s
 
     def commit(self, P):
@@ -256,15 +265,22 @@ class SlidingCrossings:
     # -- constraint, Jacobian, Hessian -------------------------------------------
     def values(self, P):
         """g (n, 1) = (|r|² − δ²)/(2δ) at s*, for the points P (n, 2W, 3)."""
-        r = self._geometry(P, self.solve(P))[0]
+        r = self._geometry(P, self.solve(P), False)[0]
         d = self.delta
         return ((np.einsum("nd,nd->n", r, r) - d * d) / (2 * d))[:, None]
 
     def _terms(self, P):
         """What ∇g and ∇²g are made of at s* (module docstring): r, w, r_s,
         its weights, r_ss, T, χ, A = c_s (n, 2, 2), c_ε (n, 2, 3K) and the
-        multipliers η = −A⁻ᵀ G_s (n, 2)."""
-        r, w, rs, ws, rss = self._geometry(P, self.solve(P))
+        multipliers η = −A⁻ᵀ G_s (n, 2); kept for the P of the last solve."""
+        self.solve(P)
+        if self._terms_at is None:
+            self._terms_at = self._evaluate_terms(P)
+        return self._terms_at
+
+    def _evaluate_terms(self, P):
+        """``_terms`` at s* (solved at P)."""
+        r, w, rs, ws, rss = self._geometry(P, self.s_star)
         T, chi = self._chords(P), self._chord_weights()
         n, K = w.shape
         A = np.einsum("nid,njd->nji", rs, T)
@@ -289,11 +305,6 @@ class SlidingCrossings:
         r, w, rs, ws, rss, T, chi, A, c_eps, eta = self._terms(P)
         n, K = w.shape
         d = self.delta
-        ww = np.einsum("nk,nl->nkl", w, w) / d[:, None, None]
-        wc = np.einsum("nj,nk,njl->nkl", eta, w, chi)
-        M = ww + wc + wc.transpose(0, 2, 1)
-        H = np.zeros((n, 3 * K, 3 * K))
-        H.reshape(n, K, 3, K, 3)[...] += M[:, :, None, :, None] * np.eye(3)[:, None]
         L_es = ((ws.transpose(0, 2, 1)[:, :, None, :] * r[:, None, :, None]
                  + w[:, :, None, None] * rs.transpose(0, 2, 1)[:, None])
                 / d[:, None, None, None]
@@ -302,9 +313,17 @@ class SlidingCrossings:
         L_ss = np.einsum("nid,njd->nij", rs, rs) / d[:, None, None]
         L_ss[:, [0, 1], [0, 1]] += (np.einsum("nd,nid->ni", r, rss) / d[:, None]
                                     + np.einsum("nj,nid,njd->ni", eta, rss, T))
-        S = -inverse2(A) @ c_eps
-        LS = L_es @ S
-        return H + LS + LS.transpose(0, 2, 1) + S.transpose(0, 2, 1) @ L_ss @ S
+        Ai = inverse2(A)
+        S = -(Ai[:, :, :1] * c_eps[:, None, 0] + Ai[:, :, 1:] * c_eps[:, None, 1])
+        # L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S = U S + Sᵀ Uᵀ, U = L_εs + ½ Sᵀ L_ss, and
+        # L_εε = (w wᵀ/δ + w cᵀ + c wᵀ) ⊗ I₃, c = ηᵀχ: one product of rank 10
+        U = L_es + 0.5 * (S.transpose(0, 2, 1) @ L_ss)
+        c = np.einsum("nj,njl->nl", eta, chi)
+        left = np.concatenate([U, S.transpose(0, 2, 1), kron_eye(w), kron_eye(c)], axis=2)
+        right = np.concatenate([S, U.transpose(0, 2, 1),
+                                kron_eye(w / d[:, None] + c).transpose(0, 2, 1),
+                                kron_eye(w).transpose(0, 2, 1)], axis=1)
+        return left @ right
 
     # -- how far the crossings slid ------------------------------------------------
     def _arcs(self, s, nq=8):
