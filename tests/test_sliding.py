@@ -93,11 +93,11 @@ def finite_difference_errors(model, x, seed):
 
 def test_gradient_and_hessian_against_finite_differences(model):
     """C = ∂g/∂ε and Σ μ_i ∇²g_i = ∂(Cᵀμ)/∂ε by central differences whose
-    states re-solve s*: errors fall as h² (measured 1.5e-6 and 2e-5 relative
-    at h = 1e-2, 100 × less at 1e-3)."""
+    states re-solve s*: errors fall as h² (measured 4.1e-8 and 3.5e-8
+    relative at h = 1e-2, 100 × less at 1e-3)."""
     x = state(model, perturbed(model, 4, 2e-5))
     (g1, h1), (g2, h2) = finite_difference_errors(model, x, 5)
-    assert g1 < 1e-5 and h1 < 1e-4
+    assert g1 < 5e-7 and h1 < 5e-7
     assert g2 < 3e-2 * g1 + 1e-9 and h2 < 3e-2 * h1 + 1e-9       # O(h²)
 
 
@@ -131,7 +131,7 @@ def two_straight_yarns(delta=1e-3, spacing=1e-3, ncp=16):
 def test_yarn_pulled_lengthwise_slides_through_a_crossing(v, n, ncp):
     """Yarn 0, straight, set moving along itself glides through the crossing
     untouched: no force, uniform motion, kinetic energy kept, the crossing
-    held, slid by v t. Over 15 segments (three windows of 5) the windows
+    held, slid by v t. Over 15 segments (five windows of 3) the windows
     move to follow it and C's pattern is laid out again."""
     fab = two_straight_yarns(ncp=ncp)
     m = FullModel(PETSc.COMM_SELF, fab, Material(gravity=0.0), contacts="sliding")
@@ -154,13 +154,13 @@ def test_yarn_pulled_lengthwise_slides_through_a_crossing(v, n, ncp):
     assert np.abs(g.getArray()).max() < 1e-15
     report = m.slide_report(x)
     assert abs(report["max_slide_m"] - v * n * dt) < 1e-12
-    # a move at least every two segments slid, yarn 1's window kept, yarn
-    # 0's centred on s before the last step
+    # a move for every segment slid, yarn 1's window kept, yarn 0's centred
+    # on s before the last step (a margin of 1: s in the middle segment)
     segments = v * n * dt / 1e-3
-    assert report["slide_window_moves"] >= int(segments) // 2
+    assert report["slide_window_moves"] >= int(segments) - 1
     c = m.constraints.local
     assert c.first[0, 1] == rest[0, 1]
-    assert abs(c.s[0, 0] - c.first[0, 0] - 2.5) <= sliding.RECENTRE + v * dt / 1e-3 + 1e-9
+    assert abs(c.s[0, 0] - c.first[0, 0] - 1.5) <= 0.5 + v * dt / 1e-3 + 1e-9
     m.destroy()
 
 

@@ -47,8 +47,8 @@ segments either side of the segment of s), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
 its window is refused (``FullModel.tunnelled``: a smaller step is tried).
-Between steps a window whose s has strayed more than ``RECENTRE`` segments
-from its middle moves along its yarn to be centred on s again
+Between steps a window whose s has strayed more than m/2 segments from
+its middle (for m = 1: s left the middle segment) moves along its yarn to be centred on s again
 (``centred``, ``move_windows``; round a closed yarn, up to an open yarn's
 ends), and C's pattern and the tangent's are laid out again: s, s* and g do
 not change, the reference tangents are taken again at s (below), and the
@@ -76,7 +76,6 @@ NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
 REANCHOR = 0.5            # slide [segments] after which the reference tangents move
-RECENTRE = 1.0             # s's distance [segments] from its window's middle that moves it
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -346,11 +345,11 @@ class SlidingCrossings:
     # -- windows that follow the crossings -------------------------------------------
     def centred(self):
         """First segments (n, 2) of the windows: centred on the committed s
-        (its segment the m-th) where s lies more than ``RECENTRE`` segments
-        from its window's middle, as they are elsewhere. An open yarn's
+        (its segment the m-th) where s lies more than m/2 segments from its
+        window's middle (m the margin), as they are elsewhere. An open yarn's
         window stops at the yarn's ends."""
         m = (self.width - 4) // 2
-        far = np.abs(self._along(self.s - self.first) - (m + 0.5)) > RECENTRE
+        far = np.abs(self._along(self.s - self.first) - (m + 0.5)) > 0.5 * m
         k, _ = bspline.locate(self.s, self.nseg, self.closed)
         centre = np.where(self.closed, np.mod(k - m, self.nseg),
                           np.clip(k - m, 0, self.nseg - self.width + 3))
@@ -426,7 +425,7 @@ def window_cols(start, first, W, nseg, closed):
     return (start[..., None] + span).reshape(len(first), 2 * W)
 
 
-def crossings(fabric, margin=2):
+def crossings(fabric, margin=1):
     """Sliding crossings of a ``Fabric``'s contacts, each starting at its
     pattern parameters (the closest approach at rest), with windows of
     margin segments either side."""

@@ -106,7 +106,7 @@ class FullModel:
     kind = "full"
 
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
-                 stretch=True, yarn_contact=False, contacts="fixed", slide_margin=2):
+                 stretch=True, yarn_contact=False, contacts="fixed", slide_margin=1):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
         nseg, closed = fabric.yarn_nseg, fabric.closed
