@@ -47,19 +47,19 @@ segments either side of the segment of s), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
 its window is refused (``FullModel.tunnelled``: a smaller step is tried).
-Between steps a window whose s has strayed more than m/2 segments from
-its middle (for m = 1: s left the middle segment) moves along its yarn to be centred on s again
-(``centred``, ``move_windows``; round a closed yarn, up to an open yarn's
-ends), and C's pattern and the tangent's are laid out again: s, s* and g do
-not change, the reference tangents are taken again at s (below), and the
-slide so far is banked (``slid``, the arc length from rest to ``base``,
-where the window last moved), so that ``slide_lengths`` measures from rest
-however far the crossing went. The reference tangents follow a crossing that slides along a
-loop: at an accepted state where s* is more than half a segment from where
-they were taken, they are taken again there, T_j = t_j − β_j r with
-β_j = r·t_j / r·r, so that r·T = 0 still holds at that state: s* and g do
-not move, only g's gradient tilts by O(η) (``commit``; the summary counts
-these re-anchorings).
+Between steps a window whose s has strayed more than m/2 segments from its
+middle (for m = 1: s left the middle segment) moves along its yarn to be
+centred on s again (``centred``, ``move_windows``; round a closed yarn, up
+to an open yarn's ends), and C's pattern and the tangent's are laid out
+again: s, s* and g do not change, the reference tangents are taken again at
+s (below), and the slide so far is banked (``slid``, the arc length from
+rest to ``base``, where the window last moved), so that ``slide_lengths``
+measures from rest however far the crossing went. The reference tangents
+follow a crossing that slides along a loop: at an accepted state where s*
+is more than half a segment from where they were taken, they are taken
+again there, T_j = t_j − β_j r with β_j = r·t_j / r·r, so that r·T = 0
+still holds at that state: s* and g do not move, only g's gradient tilts by
+O(η) (``commit``; the summary counts these re-anchorings).
 """
 
 from dataclasses import dataclass, fields
@@ -318,7 +318,8 @@ class SlidingCrossings:
         # L_εε = (w wᵀ/δ + w cᵀ + c wᵀ) ⊗ I₃, c = ηᵀχ: one product of rank 10
         U = L_es + 0.5 * (S.transpose(0, 2, 1) @ L_ss)
         c = np.einsum("nj,njl->nl", eta, chi)
-        left = np.concatenate([U, S.transpose(0, 2, 1), kron_eye(w), kron_eye(c)], axis=2)
+        left = np.concatenate([U, S.transpose(0, 2, 1), kron_eye(w), kron_eye(c)],
+                              axis=2)
         right = np.concatenate([S, U.transpose(0, 2, 1),
                                 kron_eye(w / d[:, None] + c).transpose(0, 2, 1),
                                 kron_eye(w).transpose(0, 2, 1)], axis=1)

@@ -147,8 +147,10 @@ class FullModel:
                 if contacts == "sliding" else None
             self.window_moves = 0        # times the sliding windows moved
             self._relayout = False       # C's pattern changed since the last step
-            self.constraints = cons_asm = ConstraintAssembly(
-                comm, lay, crossings if self.sliding is None else self.sliding, self.holds)
+            if self.sliding is not None:
+                crossings = self.sliding
+            self.constraints = cons_asm = ConstraintAssembly(comm, lay, crossings,
+                                                             self.holds)
             self.C = cons_asm.C
             x = self.start_state()
             cons_asm.jacobian(x)                 # C valid from the start
