@@ -174,9 +174,9 @@ def ring_and_line(n=16, radius=5e-3, delta=1e-3):
     p = bspline.curve_points(ring, 0.5, closed=True)
     out = np.array([p[0], p[1], 0.0]) / np.hypot(p[0], p[1])
     line = p + delta * out + np.outer(np.arange(-4, 5) * 2e-3, [0, 0, 1])
-    s = np.array([0.5]), np.array([3.0])
-    return Fabric([ring, line], 2.5e-4, contacts=(np.array([0]), s[0], np.array([1]),
-                                                   s[1]), closed=np.array([True, False]))
+    contacts = (np.array([0]), np.array([0.5]), np.array([1]), np.array([3.0]))
+    return Fabric([ring, line], 2.5e-4, contacts=contacts,
+                  closed=np.array([True, False]))
 
 
 def test_a_ring_turned_slides_round_its_crossing():
