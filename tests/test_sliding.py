@@ -298,6 +298,16 @@ def test_parallel_equals_serial(moved):
 
 
 
+def test_crossings_hold_the_fabric_separation():
+    """A natural fabric's crossings hold its separation (2r: touching), not
+    the template's."""
+    fab = jersey(3, 3)
+    rest = sliding.crossings(fab).delta
+    fab.separation = 2 * fab.radius
+    held = sliding.crossings(fab).delta
+    assert np.all(rest > 1.04 * held) and np.all(held == 2 * fab.radius)
+
+
 def test_slide_margin_sets_the_windows():
     """-knit_slide_margin m: windows of 4 + 2m control points a side."""
     from knitfem.cli.commands import build_system

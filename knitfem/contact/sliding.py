@@ -429,7 +429,8 @@ def window_cols(start, first, W, nseg, closed):
 def crossings(fabric, margin=1):
     """Sliding crossings of a ``Fabric``'s contacts, each starting at its
     pattern parameters (the closest approach at rest), with windows of
-    margin segments either side."""
+    margin segments either side, holding the fabric's ``separation`` where
+    it has one (else the rest's)."""
     ya, sa, yb, sb = fabric.contacts
     yarn = np.stack([ya, yb], axis=1).astype(np.int64)
     nseg = fabric.yarn_nseg[yarn]
@@ -450,6 +451,8 @@ def crossings(fabric, margin=1):
                          s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed,
                          start, s0.copy(), np.zeros(s0.shape))
     c.anchor(X, np.arange(len(s0)))
-    r = c._geometry(X, c.s0)[0]
-    c.delta = np.linalg.norm(r, axis=1)
+    if fabric.separation is not None:
+        c.delta = np.full(len(s0), float(fabric.separation))
+    else:
+        c.delta = np.linalg.norm(c._geometry(X, c.s0, False)[0], axis=1)
     return c
