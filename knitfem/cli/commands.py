@@ -312,9 +312,10 @@ def model_options(opts):
                               "persistent crossings: at fixed spline parameters, "
                               "or sliding through the stitches without friction "
                               "(full model)")
-    margin = opts.getInt("slide_margin", 2, "sliding crossings: segments a "
-                         "crossing may slide either way from its rest segment "
-                         "[segments, default 2]", 1)
+    margin = opts.getInt("slide_margin", 1, "sliding crossings: segments a "
+                         "crossing may slide within a step either way from the "
+                         "middle of its window, which follows it between steps "
+                         "[segments, default 1]", 1)
     if contacts == "sliding" and kind != "full":
         raise KnitError(f"-knit_contacts sliding: the {kind} model keeps no "
                         f"crossings of its own; use -knit_model full")

@@ -165,7 +165,9 @@ class ConstraintAssembly:
         lam.destroy()
         self.rows, self.contact_kind = nr, contacts.kind
         self.local = contacts.select(self.mine)          # rows of this rank
-        self.reaching = contacts.select(self.touching)   # into its tangent rows
+        # into its tangent rows: the same crossings (one rank), or more
+        self.reaching = self.local if np.array_equal(self.touching, self.mine) \
+            else contacts.select(self.touching)
         self.nonlinear = contacts.count > 0               # C depends on ε
         self.B = None          # curvature_operator in the owning model's tangent
         self.reanchored = 0    # sliding crossings' reference tangents moved
@@ -230,36 +232,50 @@ class ConstraintAssembly:
 
     def commit(self, x):
         """An accepted state x: sliding crossings start the search for their
-        point from there; returns how many sit at an end of their window
-        (collective; 0 for fixed crossings)."""
+        point from there. Returns how many have strayed so far from their
+        windows' middle that a window should move (``SlidingCrossings.centred``)
+        and how many sit at an end of a window that cannot move (an open
+        yarn's end) (collective; 0, 0 for fixed crossings)."""
+        if self.diagonal_curvature:
+            return 0, 0
+        P = self._points(x)
+        loc = self.local
+        self.reanchored += loc.commit(P[self.ghost_c])
+        if self.reaching is not loc:
+            self.reaching.commit(P[self.ghost_r])
+        move = (loc.centred() != loc.first).any(axis=1)
+        stuck = np.zeros(loc.count, bool)
+        stuck[loc.at_edge()] = True
+        counts = np.array([np.count_nonzero(move), np.count_nonzero(stuck & ~move)])
+        return tuple(self.comm.tompi4py().allreduce(counts))
+
+    def slid_out(self, x):
+        """How many sliding crossings' s* at the state x lie on an end of
+        their window, where they were held (collective; 0 for fixed)."""
         if self.diagonal_curvature:
             return 0
-        P = self._points(x)
-        self.reanchored += self.local.commit(P[self.ghost_c])
-        self.reaching.commit(P[self.ghost_r])
+        self.local.solve(self._points(x)[self.ghost_c])
         return self.comm.tompi4py().allreduce(len(self.local.at_edge()))
 
     def sliding_parameters(self):
-        """Every sliding crossing's committed s, reference parameters σ and
-        reference tangents' weights χ, (ncontacts, 4 + 4W) on every rank, for
-        a checkpoint (collective); None for fixed crossings."""
+        """Every sliding crossing's committed state
+        (``SlidingCrossings.state``: s, σ, windows, slide so far, χ),
+        (ncontacts, 10 + 4W) on every rank, for a checkpoint or to move the
+        windows (collective); None for fixed crossings."""
         if self.diagonal_curvature:
             return None
-        loc = self.local
-        parts = self.comm.tompi4py().allgather((self.mine, np.concatenate(
-            [loc.s, loc.sT, loc.chi.reshape(loc.count, -1)], axis=1)))
-        s = np.zeros((sum(len(m) for m, _ in parts), 4 + 4 * loc.width))
+        parts = self.comm.tompi4py().allgather((self.mine, self.local.state()))
+        s = np.zeros((sum(len(m) for m, _ in parts), parts[0][1].shape[1]))
         for mine, part in parts:
             s[mine] = part
         return s
 
-    def set_sliding_parameters(self, s):
-        """Commit the sliding parameters (``sliding_parameters``)."""
-        s = np.asarray(s, dtype=float)
+    def set_sliding_parameters(self, state, X):
+        """Commit the sliding crossings' ``state`` (``sliding_parameters``,
+        on the windows they have now; X the rest control points)."""
+        state = np.asarray(state, dtype=float)
         for part, which in ((self.local, self.mine), (self.reaching, self.touching)):
-            part.s, part.s_star, part.sT = s[which, :2], s[which, :2], s[which, 2:4]
-            part.chi = s[which, 4:].reshape(len(which), 2, -1)
-            part.solved_at = None
+            part.set_state(state[which], X)
 
     def slides(self):
         """Arc lengths (n, 2) along both yarns by which this rank's sliding

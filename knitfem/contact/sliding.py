@@ -43,16 +43,23 @@ At the two straight yarns' crossing r·t = 0, so η = 0 and the force is
 w_k r/δ, along the normal.
 
 Weights live on a window of 4 + 2m control points a yarn (m the margin in
-segments either side of the rest segment), so that C(ε) keeps one sparsity
+segments either side of the segment of s), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
-its window is refused (``FullModel.begin_step``), with the advice to widen
-the margin. The reference tangents follow a crossing that slides along a
-loop: at an accepted state where s* is more than half a segment from where
-they were taken, they are taken again there, T_j = t_j − β_j r with
-β_j = r·t_j / r·r, so that r·T = 0 still holds at that state: s* and g do
-not move, only g's gradient tilts by O(η) (``commit``; the summary counts
-these re-anchorings).
+its window is refused (``FullModel.tunnelled``: a smaller step is tried).
+Between steps a window whose s has strayed more than m/2 segments from its
+middle (for m = 1: s left the middle segment) moves along its yarn to be
+centred on s again (``centred``, ``move_windows``; round a closed yarn, up
+to an open yarn's ends), and C's pattern and the tangent's are laid out
+again: s, s* and g do not change, the reference tangents are taken again at
+s (below), and the slide so far is banked (``slid``, the arc length from
+rest to ``base``, where the window last moved), so that ``slide_lengths``
+measures from rest however far the crossing went. The reference tangents
+follow a crossing that slides along a loop: at an accepted state where s*
+is more than half a segment from where they were taken, they are taken
+again there, T_j = t_j − β_j r with β_j = r·t_j / r·r, so that r·T = 0
+still holds at that state: s* and g do not move, only g's gradient tilts by
+O(η) (``commit``; the summary counts these re-anchorings).
 """
 
 from dataclasses import dataclass, fields
@@ -81,6 +88,14 @@ def inverse2(A):
     return inv / (A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])[:, None, None]
 
 
+def kron_eye(v):
+    """v ⊗ I₃ (n, 3K, 3) of vectors v (n, K)."""
+    out = np.zeros(v.shape + (3, 3))
+    for q in range(3):
+        out[..., q, q] = v
+    return out.reshape(len(v), -1, 3)
+
+
 class SlidError(KnitError):
     """A crossing slid out of the window of control points of its pattern."""
 
@@ -92,12 +107,15 @@ class SlidingCrossings:
     owner (n,) the yarn of P_a; cols (n, 2W) global control points of the two
     windows (W = 4 + 2 margin, yarn a's then yarn b's); first (n, 2) the
     first segment of each window; nseg (n, 2) and closed (n, 2) the two
-    yarns' segments and closure; delta (n,) the rest separation; s (n, 2) the committed sliding
+    yarns' segments and closure, start (n, 2) their first control points;
+    delta (n,) the rest separation; s (n, 2) the committed sliding
     parameters (state: where every evaluation's search for s* starts
     from), s0 (n, 2) their rest values; X (n, 2W, 3) the rest control points
     of the windows (arc lengths); sT (n, 2) the parameters σ where the
-    reference tangents were taken, chi (n, 2, 2W) their weights. ``s_star``
-    holds the last evaluation's s*.
+    reference tangents were taken, chi (n, 2, 2W) their weights; base (n, 2)
+    the s where the windows last moved and slid (n, 2) the signed arc length
+    along the rest yarns from s0 to base. ``s_star`` holds the last
+    evaluation's s*.
     """
 
     owner: np.ndarray
@@ -111,12 +129,15 @@ class SlidingCrossings:
     chi: np.ndarray
     nseg: np.ndarray
     closed: np.ndarray
+    start: np.ndarray
+    base: np.ndarray
+    slid: np.ndarray
 
     rows = 1                      # scalar rows a crossing
     kind = "sliding"
 
     def __post_init__(self):
-        self.s_star, self.solved_at = self.s.copy(), None
+        self.s_star, self.solved_at, self._terms_at = self.s.copy(), None, None
 
     @property
     def count(self):
@@ -154,19 +175,20 @@ class SlidingCrossings:
           + np.arange(4)] = [bspline.basis(u, d) for d in nu]
         return w
 
-    def _geometry(self, P, s):
+    def _geometry(self, P, s, second=True):
         """r (n, 3), its weights w (n, 2W), r_s (n, 2, 3), the weights of r_s
-        (n, 2, 2W) and r_ss's diagonal (n, 2, 3) at s, for points P (n, 2W, 3)."""
+        (n, 2, 2W) and r_ss's diagonal (n, 2, 3) (None unless ``second``) at
+        s, for points P (n, 2W, 3)."""
         W = self.width
-        b0, b1, b2 = self.weights(s)
+        b = self.weights(s, (0, 1, 2) if second else (0, 1))
         sign = np.array([1.0, -1.0])[None, :, None]
-        w = np.concatenate([b0[:, 0], -b0[:, 1]], axis=1)
+        w = np.concatenate([b[0][:, 0], -b[0][:, 1]], axis=1)
         ws = np.zeros((len(s), 2, 2 * W))
-        ws[:, 0, :W], ws[:, 1, W:] = b1[:, 0], -b1[:, 1]
+        ws[:, 0, :W], ws[:, 1, W:] = b[1][:, 0], -b[1][:, 1]
         Pw = P.reshape(len(s), 2, W, 3)
         r = np.einsum("nk,nkd->nd", w, P)
-        rs = sign * np.einsum("njk,njkd->njd", b1, Pw)
-        rss = sign * np.einsum("njk,njkd->njd", b2, Pw)
+        rs = sign * np.einsum("njk,njkd->njd", b[1], Pw)
+        rss = sign * np.einsum("njk,njkd->njd", b[2], Pw) if second else None
         return r, w, rs, ws, rss
 
     def _chord_weights(self):
@@ -182,7 +204,7 @@ class SlidingCrossings:
         """Reference tangents of the crossings ``which`` at their s:
         T_j = t_j − β_j r, β_j = r·t_j / r·r at the points P, so that r·T = 0
         there and s* at P stays s."""
-        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s)[:4])
+        r, w, rs, ws = (a[which] for a in self._geometry(P, self.s, False)[:4])
         beta = np.einsum("nd,njd->nj", r, rs) / np.einsum("nd,nd->n", r, r)[:, None]
         self.chi[which] = ws - beta[..., None] * w[:, None, :]
         self.sT[which] = self.s[which]
@@ -215,14 +237,14 @@ class SlidingCrossings:
         T = self._chords(P)
         s = self.s.copy()
         for _ in range(NEWTON_STEPS):
-            r, _, rs = self._geometry(P, s)[:3]
+            r, _, rs = self._geometry(P, s, False)[:3]
             c = np.einsum("nd,njd->nj", r, T)
             ds = -np.einsum("nij,nj->ni", inverse2(np.einsum("nid,njd->nji", rs, T)), c)
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
             ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
                 break
-        self.s_star, self.solved_at = s, P.copy()
+        self.s_star, self.solved_at, self._terms_at = s, P.copy(), None
         return s
 
     def commit(self, P):
@@ -242,15 +264,22 @@ class SlidingCrossings:
     # -- constraint, Jacobian, Hessian -------------------------------------------
     def values(self, P):
         """g (n, 1) = (|r|² − δ²)/(2δ) at s*, for the points P (n, 2W, 3)."""
-        r = self._geometry(P, self.solve(P))[0]
+        r = self._geometry(P, self.solve(P), False)[0]
         d = self.delta
         return ((np.einsum("nd,nd->n", r, r) - d * d) / (2 * d))[:, None]
 
     def _terms(self, P):
         """What ∇g and ∇²g are made of at s* (module docstring): r, w, r_s,
         its weights, r_ss, T, χ, A = c_s (n, 2, 2), c_ε (n, 2, 3K) and the
-        multipliers η = −A⁻ᵀ G_s (n, 2)."""
-        r, w, rs, ws, rss = self._geometry(P, self.solve(P))
+        multipliers η = −A⁻ᵀ G_s (n, 2); kept for the P of the last solve."""
+        self.solve(P)
+        if self._terms_at is None:
+            self._terms_at = self._evaluate_terms(P)
+        return self._terms_at
+
+    def _evaluate_terms(self, P):
+        """``_terms`` at s* (solved at P)."""
+        r, w, rs, ws, rss = self._geometry(P, self.s_star)
         T, chi = self._chords(P), self._chord_weights()
         n, K = w.shape
         A = np.einsum("nid,njd->nji", rs, T)
@@ -275,11 +304,6 @@ class SlidingCrossings:
         r, w, rs, ws, rss, T, chi, A, c_eps, eta = self._terms(P)
         n, K = w.shape
         d = self.delta
-        ww = np.einsum("nk,nl->nkl", w, w) / d[:, None, None]
-        wc = np.einsum("nj,nk,njl->nkl", eta, w, chi)
-        M = ww + wc + wc.transpose(0, 2, 1)
-        H = np.zeros((n, 3 * K, 3 * K))
-        H.reshape(n, K, 3, K, 3)[...] += M[:, :, None, :, None] * np.eye(3)[:, None]
         L_es = ((ws.transpose(0, 2, 1)[:, :, None, :] * r[:, None, :, None]
                  + w[:, :, None, None] * rs.transpose(0, 2, 1)[:, None])
                 / d[:, None, None, None]
@@ -288,22 +312,87 @@ class SlidingCrossings:
         L_ss = np.einsum("nid,njd->nij", rs, rs) / d[:, None, None]
         L_ss[:, [0, 1], [0, 1]] += (np.einsum("nd,nid->ni", r, rss) / d[:, None]
                                     + np.einsum("nj,nid,njd->ni", eta, rss, T))
-        S = -inverse2(A) @ c_eps
-        LS = L_es @ S
-        return H + LS + LS.transpose(0, 2, 1) + S.transpose(0, 2, 1) @ L_ss @ S
+        Ai = inverse2(A)
+        S = -(Ai[:, :, :1] * c_eps[:, None, 0] + Ai[:, :, 1:] * c_eps[:, None, 1])
+        # L_εs S + (L_εs S)ᵀ + Sᵀ L_ss S = U S + Sᵀ Uᵀ, U = L_εs + ½ Sᵀ L_ss, and
+        # L_εε = (w wᵀ/δ + w cᵀ + c wᵀ) ⊗ I₃, c = ηᵀχ: one product of rank 10
+        U = L_es + 0.5 * (S.transpose(0, 2, 1) @ L_ss)
+        c = np.einsum("nj,njl->nl", eta, chi)
+        left = np.concatenate([U, S.transpose(0, 2, 1), kron_eye(w), kron_eye(c)],
+                              axis=2)
+        right = np.concatenate([S, U.transpose(0, 2, 1),
+                                kron_eye(w / d[:, None] + c).transpose(0, 2, 1),
+                                kron_eye(w).transpose(0, 2, 1)], axis=1)
+        return left @ right
 
     # -- how far the crossings slid ------------------------------------------------
-    def slide_lengths(self, nq=8):
-        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
+    def _arcs(self, s, nq=8):
+        """Signed arc length (n, 2) along each rest yarn from s0 to s (inside
+        the windows): slid + ∫_base^s |X'(σ)| dσ (nq-point Gauss)."""
         x, wq = bspline.gauss(nq)
-        ds = self._along(self.s_star - self.s0)
+        ds = self._along(s - self.base)
         speed = np.zeros(self.s.shape)
         Xw = self.X.reshape(self.count, 2, self.width, 3)
         for xq, w in zip(x, wq):
-            tq = np.einsum("njk,njkd->njd", self.weights(self.s0 + xq * ds, (1,))[0],
+            tq = np.einsum("njk,njkd->njd", self.weights(self.base + xq * ds, (1,))[0],
                            Xw)
             speed += w * np.linalg.norm(tq, axis=-1)
-        return np.abs(ds) * speed
+        return self.slid + ds * speed
+
+    def slide_lengths(self):
+        """Arc length (n, 2) along each rest yarn from s0 to the last s*."""
+        return np.abs(self._arcs(self.s_star))
+
+    # -- windows that follow the crossings -------------------------------------------
+    def centred(self):
+        """First segments (n, 2) of the windows: centred on the committed s
+        (its segment the m-th) where s lies more than m/2 segments from its
+        window's middle (m the margin), as they are elsewhere. An open yarn's
+        window stops at the yarn's ends."""
+        m = (self.width - 4) // 2
+        far = np.abs(self._along(self.s - self.first) - (m + 0.5)) > 0.5 * m
+        k, _ = bspline.locate(self.s, self.nseg, self.closed)
+        centre = np.where(self.closed, np.mod(k - m, self.nseg),
+                          np.clip(k - m, 0, self.nseg - self.width + 3))
+        return np.where(far, centre, self.first)
+
+    def move_windows(self, first, X, P):
+        """Move the windows to start at the segments ``first`` (n, 2), for
+        the rest control points X and the points P (N, 3) of every yarn.
+        A crossing whose window moved keeps s and s* (g does not change): its
+        slide so far is banked (slid ← arc length from s0 to s, base ← s)
+        and its reference tangents are taken at s on the new windows
+        (``anchor``). Returns the indices of the crossings that moved."""
+        moved = np.flatnonzero((first != self.first).any(axis=1))
+        if not moved.size:
+            return moved
+        self.slid[moved] = self._arcs(self.s)[moved]
+        self.base[moved] = self.s[moved]
+        self.first[moved] = first[moved]
+        self.cols[moved] = window_cols(self.start, first, self.width, self.nseg,
+                                         self.closed)[moved]
+        self.X[moved] = X[self.cols[moved]]
+        self.s_star, self.solved_at = self.s.copy(), None
+        self.anchor(P[self.cols], moved)
+        return moved
+
+    def state(self):
+        """The committed state (n, 10 + 4W): s, σ, first, base, slid, χ."""
+        return np.concatenate([self.s, self.sT, self.first, self.base, self.slid,
+                               self.chi.reshape(self.count, -1)], axis=1)
+
+    def set_state(self, state, X):
+        """Commit a ``state`` (windows, where they moved, with the rest
+        control points X (N, 3) of every yarn)."""
+        state = np.asarray(state, dtype=float)
+        self.s, self.sT = state[:, 0:2].copy(), state[:, 2:4].copy()
+        self.first = np.rint(state[:, 4:6]).astype(self.first.dtype)
+        self.base, self.slid = state[:, 6:8].copy(), state[:, 8:10].copy()
+        self.chi = state[:, 10:].reshape(self.count, 2, -1).copy()
+        self.cols = window_cols(self.start, self.first, self.width, self.nseg,
+                                self.closed)
+        self.X = X[self.cols]
+        self.s_star, self.solved_at = self.s.copy(), None
 
 
 class BlockCurvature:
@@ -327,13 +416,24 @@ class BlockCurvature:
         values += self.S @ ((weight * np.asarray(mu))[:, None, None] * H).ravel()
 
 
-def crossings(fabric, margin=2):
+def window_cols(start, first, W, nseg, closed):
+    """Global control points (n, 2W) of the windows of W control points
+    starting at segments ``first`` (n, 2) of yarns whose first control
+    points are ``start`` (n, 2) (modulo a closed yarn's control points)."""
+    span = first[..., None] + np.arange(W)
+    ncp = np.where(closed, nseg, nseg + 3)[..., None]
+    span = np.where(closed[..., None], np.mod(span, ncp), span)
+    return (start[..., None] + span).reshape(len(first), 2 * W)
+
+
+def crossings(fabric, margin=1):
     """Sliding crossings of a ``Fabric``'s contacts, each starting at its
     pattern parameters (the closest approach at rest), with windows of
-    margin segments either side."""
+    margin segments either side, holding the fabric's ``separation`` where
+    it has one (else the rest's)."""
     ya, sa, yb, sb = fabric.contacts
     yarn = np.stack([ya, yb], axis=1).astype(np.int64)
-    ncp, nseg = fabric.yarn_ncp[yarn], fabric.yarn_nseg[yarn]
+    nseg = fabric.yarn_nseg[yarn]
     closed = fabric.closed[yarn]
     W = 4 + 2 * margin
     short = ~closed & (nseg < W - 3)
@@ -344,13 +444,15 @@ def crossings(fabric, margin=2):
     k, _ = bspline.locate(s0, nseg, closed)
     first = np.where(closed, np.mod(k - margin, nseg),
                      np.clip(k - margin, 0, nseg - W + 3))
-    span = first[..., None] + np.arange(W)
-    span = np.where(closed[..., None], np.mod(span, ncp[..., None]), span)
-    cols = (fabric.yarn_start[yarn][..., None] + span).reshape(len(s0), 2 * W)
+    start = fabric.yarn_start[yarn]
+    cols = window_cols(start, first, W, nseg, closed)
     X = fabric.X[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
-                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed)
+                         s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed,
+                         start, s0.copy(), np.zeros(s0.shape))
     c.anchor(X, np.arange(len(s0)))
-    r = c._geometry(X, c.s0)[0]
-    c.delta = np.linalg.norm(r, axis=1)
+    if fabric.separation is not None:
+        c.delta = np.full(len(s0), float(fabric.separation))
+    else:
+        c.delta = np.linalg.norm(c._geometry(X, c.s0, False)[0], axis=1)
     return c

@@ -106,7 +106,7 @@ class FullModel:
     kind = "full"
 
     def __init__(self, comm, fabric, material, nq=4, kernels="compiled",
-                 stretch=True, yarn_contact=False, contacts="fixed", slide_margin=2):
+                 stretch=True, yarn_contact=False, contacts="fixed", slide_margin=1):
         self.comm, self.fabric, self.material = comm, fabric, material
         self.stretch = stretch
         nseg, closed = fabric.yarn_nseg, fabric.closed
@@ -141,11 +141,16 @@ class FullModel:
             self.m = create_aij(comm, (n, N), (n, N), m_csr)
             self.M = create_aij(comm, (3 * n, 3 * N), (3 * n, 3 * N),
                                 kron_identity(*m_csr), bsize=3)
-            crossings, holds = cons.build(fabric)
-            if contacts == "sliding":
-                crossings = sliding.crossings(fabric, slide_margin)
+            crossings, self.holds = cons.build(fabric)
+            # sliding crossings, all of them on every rank (their windows move)
+            self.sliding = sliding.crossings(fabric, slide_margin) \
+                if contacts == "sliding" else None
+            self.window_moves = 0        # times the sliding windows moved
+            self._relayout = False       # C's pattern changed since the last step
+            if self.sliding is not None:
+                crossings = self.sliding
             self.constraints = cons_asm = ConstraintAssembly(comm, lay, crossings,
-                                                             holds)
+                                                             self.holds)
             self.C = cons_asm.C
             x = self.start_state()
             cons_asm.jacobian(x)                 # C valid from the start
@@ -207,24 +212,64 @@ class FullModel:
     def begin_step(self, x, t=None):
         """A step starts from the state x at time t: friction's normal forces
         and reference points are taken there (lagged, ``colliders``); sliding
-        crossings start the search for their point from there, and must lie
-        inside their windows; the tangent's pattern is laid out again around
-        x when the yarn pairs near contact no longer fit it. Returns whether
-        it was (the Newton matrix must then be made again). Collective."""
+        crossings start the search for their point from there, and their
+        windows move to follow them (``move_windows``); the tangent's pattern
+        is laid out again around x when the yarn pairs near contact no longer
+        fit it. Returns whether C's or K's pattern changed (the Newton matrix
+        must then be made again). Collective."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x), t)
-        out = self.constraints.commit(x)
-        if out:
-            raise SimulationError(f"{out} sliding crossing(s) slid to the end of "
-                                  f"their window: widen it with -knit_slide_margin",
-                                  curable=False)
+        move, stuck = self.constraints.commit(x)
+        if move:
+            self.move_windows(x)
+        if stuck:
+            raise SimulationError(f"{stuck} sliding crossing(s) slid to the end of "
+                                  f"their yarn", curable=False)
+        relayout, self._relayout = self._relayout, False
         yc = self.yarn_contact
-        if yc is None or self._tangent is None:
-            return False
-        if yc.fits(self.all_points(x)):
-            return False
+        if yc is None or self._tangent is None or yc.fits(self.all_points(x)):
+            return relayout
         self.drop_tangent()
         return True
+
+    def move_windows(self, x, first=None):
+        """Move the sliding crossings' windows to start at the segments
+        ``first`` (ncontacts, 2; default: centred on the crossings that
+        strayed, ``SlidingCrossings.centred``) with the state x committed,
+        and lay C and its ghosts out again on them (the tangent's pattern at
+        the next ``stiffness``; ``begin_step`` then asks for a new Newton
+        matrix). Counted in ``window_moves``; returns how many crossings
+        moved. Collective."""
+        cross = self.sliding
+        cross.set_state(self.constraints.sliding_parameters(), self.fabric.X)
+        moved = cross.move_windows(cross.centred() if first is None else first,
+                                   self.fabric.X, self.all_points(x))
+        if len(moved):
+            self._lay_out_constraints()
+            self.window_moves += 1
+        return len(moved)
+
+    def set_sliding_parameters(self, state):
+        """Commit the sliding crossings' state (``SlidingCrossings.state``
+        of all crossings, as ``ConstraintAssembly.sliding_parameters`` gave
+        it), windows included. Collective."""
+        windows = self.sliding.first.copy()
+        self.sliding.set_state(state, self.fabric.X)
+        if np.array_equal(self.sliding.first, windows):
+            self.constraints.set_sliding_parameters(state, self.fabric.X)
+        else:
+            self._lay_out_constraints()
+
+    def _lay_out_constraints(self):
+        """The constraints' assembly made again from ``self.sliding``."""
+        old = self.constraints
+        with EV_ASSEMBLY:
+            self.constraints = ConstraintAssembly(self.comm, self.layout, self.sliding,
+                                                  self.holds)
+        self.constraints.reanchored = old.reanchored
+        self.C = self.constraints.C
+        old.destroy()
+        self._tangent, self._relayout = None, True
 
     def tangent_missed(self):
         """How many tangent entries the yarn contact has found outside K's
@@ -305,10 +350,15 @@ class FullModel:
         return self.comm.tompi4py().allreduce(local, op=MPI.MIN)
 
     def tunnelled(self, x0, x1):
-        """Why the step from x0 to x1 must be refused, or None: a yarn point
-        whose straight path went deeper than one yarn radius into a body
-        (a resting knit sinks ~1e-3 r into the barrier's gap, so only a
-        step that jumped the barrier goes there; collective)."""
+        """Why the step from x0 to x1 must be refused, or None: a sliding
+        crossing held at an end of its window (its conditions unmet; a
+        smaller step keeps it inside), or a yarn point whose straight path
+        went deeper than one yarn radius into a body (a resting knit sinks
+        ~1e-3 r into the barrier's gap, so only a step that jumped the
+        barrier goes there; collective)."""
+        out = self.constraints.slid_out(x1)
+        if out:
+            return f"{out} sliding crossing(s) reached the end of their window"
         if self.barrier is None:
             return None
         local = self.barrier.swept_depth(self.yarn_points(x0), self.yarn_points(x1))
@@ -454,9 +504,10 @@ class FullModel:
     def slide_report(self, x):
         """``max_slide_m``, the largest arc length by which a sliding crossing
         has moved along one of its yarns from rest to the (accepted) state x,
-        and ``slide_reanchored``, how often a crossing's reference tangents
-        moved (``sliding.SlidingCrossings.commit``); {} for fixed crossings
-        (collective)."""
+        ``slide_reanchored``, how often a crossing's reference tangents
+        moved (``sliding.SlidingCrossings.commit``), and ``slide_window_moves``,
+        how often the windows moved and C's pattern was laid out again
+        (``move_windows``); {} for fixed crossings (collective)."""
         if self.constraints.diagonal_curvature:
             return {}
         self.constraints.commit(x)
@@ -464,7 +515,8 @@ class FullModel:
         return dict(max_slide_m=max_over_ranks(
             self.comm, float(slides.max()) if slides.size else 0.0),
             slide_reanchored=self.comm.tompi4py().allreduce(
-                self.constraints.reanchored))
+                self.constraints.reanchored),
+            slide_window_moves=self.window_moves)
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""

@@ -374,7 +374,7 @@ class Simulation:
         self.x.getArray()[:], self.v.getArray()[:] = ckpt.x[lo:hi], ckpt.v[lo:hi]
         self.t, self.step_count = ckpt.t, ckpt.step
         if ckpt.extra.get("sliding") is not None:     # where crossings had slid
-            self.full.constraints.set_sliding_parameters(ckpt.extra["sliding"])
+            self.full.set_sliding_parameters(ckpt.extra["sliding"])
         self.stats.update(ckpt.stats)
         self.frames = []
         if self.comm.rank == 0 and self.output is not None:   # drawn again
