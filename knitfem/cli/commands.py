@@ -48,7 +48,9 @@ def jersey_from_options(opts, rows=7, cols=7, any_pattern=False):
 
 def rest_from_options(opts, jersey):
     """-knit_rest: the relaxed knit (``knitfem relax``'s relaxed.h5) the
-    jersey's fabrics start from, or "template"; sets ``jersey.rest``."""
+    jersey's fabrics start from, or "template"; sets ``jersey.rest``, and
+    -knit_yarn_contact, unless given, to the contact the knit relaxed with
+    (without it a knit relaxed against contact is not in equilibrium)."""
     from knitfem.run.relax import RelaxedKnit
 
     path = opts.getString("rest", "template", "the knit a scene starts from: "
@@ -61,6 +63,9 @@ def rest_from_options(opts, jersey):
             jersey.rest.check(jersey)
         except ValueError as err:
             raise KnitError(f"-knit_rest {path}: {err}") from None
+        # the contact it relaxed with holds part of its prestress
+        if not opts.db.hasName("yarn_contact"):
+            opts.db.setValue("yarn_contact", "on" if jersey.rest.yarn_contact else "off")
     return jersey
 
 
@@ -168,15 +173,12 @@ def relax(comm):
     bent into its loops, at equilibrium (``run.relax``)."""
     import sys
 
-    from solvers.integrators import BackwardEuler
-    from solvers.stepping import StepControl
-
     from knitfem import io
     from knitfem.knit.pattern import jersey_fabric
     from knitfem.model.full import FullModel
     from knitfem.run.output import OutputDirectory
-    from knitfem.run.relax import (RelaxedKnit, knit_measures, natural_fabric,
-                                   stitch_length)
+    from knitfem.run.relax import (Relaxation, RelaxedKnit, knit_measures,
+                                   natural_fabric, stitch_length)
     from knitfem.run.simulation import Simulation
 
     opts = KnitOptions()
@@ -191,14 +193,13 @@ def relax(comm):
     if min(scale) <= 0:
         raise KnitError(f"-knit_template_scale {','.join(map(str, scale))}: "
                         "expected three positive factors")
-    material = material_from_options(opts, gravity=0.0, damping=RELAX_DAMPING)
+    material = material_from_options(opts, gravity=0.0, damping=0.0)
     yarn_contact = yarn_contact_option(opts, "on")
-    t_max = opts.getReal("t_end", 2.0, "longest relaxation [s] (it stops when the "
-                         "knit has come to rest)", positive=True)
-    rest = opts.getReal("rest_speed", 1e-5, "the knit is at rest when its RMS speed "
-                        "falls below this [m/s]", positive=True)
-    every = opts.getInt("output_every", 10, "steps between progress lines and "
-                        "frames of relaxed.xdmf", 1)
+    steps = opts.getInt("load_steps", 4, "load steps that take the rest lengths and "
+                        "crossings from the start's own to the natural knit's", 1)
+    accel = opts.getReal("rest_accel", 1e-4, "the knit is at rest when no "
+                         "coordinate's residual force over its mass exceeds this "
+                         "[m/s^2]", positive=True)
     restart = opts.getString("restart", "", "continue an interrupted relaxation "
                              "from this HDF5 checkpoint")
     path = opts.getOutput("out/relax")
@@ -211,43 +212,37 @@ def relax(comm):
         PETSc.Sys.Print(f"knitfem relax: {jersey.rows}x{jersey.cols} {jersey.knit}, "
                         f"loop length {1e3 * ell:.4g} mm, {system.M.getSize()[0]} "
                         f"coordinates + {system.C.getSize()[0]} constraints")
-        control = StepControl(1e-3, adaptive=True, rtol=1e-3, atol=1e-5,
-                              dt_min=1e-9, dt_max=0.05)
-        mass = system.M.getRowSum().sum() / 3
-
-        def settled(m):
-            return np.sqrt(2 * m["kinetic_energy"] / mass) < rest
-
-        sim = Simulation(system, BackwardEuler(system, control.dt, control),
-                         out=out, scene="relax", output_every=every,
-                         series="relaxed.xdmf", settled=settled, energy_growth=0,
+        relaxation = Relaxation(system, steps, accel)
+        sim = Simulation(system, relaxation, out=out, scene="relax", output_every=1,
+                         series="relaxed.xdmf", energy_growth=0,
                          view="three_quarter", command=sys.argv)
         if restart:
             sim.restart(restart)
         out.rank0(out.remove, "relaxed.h5")     # an earlier relaxation's
-        rec = simulate(sim, t_max, "relax", out)
+        rec = simulate(sim, 1.0, "relax", out)
         if isinstance(rec, int):
             return rec
         P = sim.control_points()
-        speed = np.sqrt(2 * rec["kinetic_energy"] / mass)
         if comm.rank == 0:
-            rec.update(knit_measures(jersey, fabric, P), residual_speed_m_s=speed,
-                       settled=bool(speed < rest), rows=jersey.rows,
-                       cols=jersey.cols, shape=jersey.knit,
-                       chart=jersey.chart.text(), template_scale=list(scale))
+            rec.update(knit_measures(jersey, fabric, P),
+                       residual_acceleration_m_s2=relaxation.solver.acceleration,
+                       yarn_contact=yarn_contact, rows=jersey.rows,
+                       cols=jersey.cols, shape=jersey.knit, load_steps=steps,
+                       chart=jersey.chart.text(), template_scale=list(scale),
+                       **{f"descent_{k}": v for k, v in relaxation.solver.stats.items()})
             RelaxedKnit(jersey.rows, jersey.cols, jersey.knit, jersey.radius,
                         fabric.X, P, fabric.contacts, fabric.separation,
-                        rec["loop_length_m"]).save(os.path.join(out.path,
-                                                                "relaxed.h5"))
+                        rec["loop_length_m"], yarn_contact=yarn_contact).save(
+                            os.path.join(out.path, "relaxed.h5"))
             io.draw(os.path.join(out.path, "relaxed.png"), fabric.curves(P),
                     jersey.radius, view="three_quarter",
                     title=f"{jersey.rows}x{jersey.cols} jersey relaxed: k_c "
                           f"{rec['k_c']:.2f}, k_w {rec['k_w']:.2f}")
-        sim.write_summary(rec, "completed" if speed < rest else
-                          f"not at rest by t = {sim.t:g} s")
+        sim.write_summary(rec, "completed")
         if comm.rank == 0:
             PETSc.Sys.Print(
-                f"relaxed in {rec['steps']} steps ({sim.t:.3g} s): loop length "
+                f"relaxed in {rec['newton_iterations']} Newton iterations "
+                f"({rec['wall_time_s']:.3g} s): loop length "
                 f"{1e3 * rec['loop_length_m']:.3f} mm, courses "
                 f"{1e3 * rec['course_spacing_m']:.3f} mm, wales "
                 f"{1e3 * rec['wale_spacing_m']:.3f} mm apart; k_c {rec['k_c']:.3f}, "
@@ -255,13 +250,7 @@ def relax(comm):
                 f"{out.path}/relaxed.h5")
     finally:
         out.release()
-    return 0 if speed < rest else 3
-
-
-RELAX_DAMPING = 30.0
-"""Default c_d [1/s] of a relaxation: a damped flow to rest (its path does not
-matter, only where it ends); 30/s damps the 7×7 jersey's slowest bending
-modes within a few tenths of a second."""
+    return 0
 
 
 def material_from_options(opts, scene=None, gravity=9.81, damping=None):

@@ -33,10 +33,10 @@ from knitfem.knit.measure import curl, loop_length, munden, spacings
 from knitfem.yarn import bspline
 
 __all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "stitch_length",
-           "knit_measures",
+           "knit_measures", "Ramp", "Relaxation",
            "stress_free", "VERSION"]
 
-VERSION = 1
+VERSION = 2
 """Layout of relaxed.h5."""
 
 
@@ -61,16 +61,113 @@ def stitch_length(jersey, fabric, P=None):
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
     ``length`` a stitch (default: the template's): its rest X the template
-    scaled uniformly to that length, its start X scaled by ``scale`` along
-    the fabric's course, wale and thickness directions about its centroid;
+    scaled uniformly to that length, its start X the template scaled by
+    ``scale`` along the fabric's course, wale and thickness directions about
+    its centroid (its loop length its own: ``Ramp`` takes it to ``length``);
     crossings held 2r apart."""
     ell = stitch_length(jersey, fabric)
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
     X = (fabric.X - centre) * ((length or ell) / ell) + centre
     S = F @ np.diag(scale) @ F.T
-    return replace(fabric, X=X, start_X=(X - centre) @ S.T + centre, natural=True,
-                   separation=2 * fabric.radius)
+    return replace(fabric, X=X, start_X=(fabric.X - centre) @ S.T + centre,
+                   natural=True, separation=2 * fabric.radius)
+
+
+class Ramp:
+    """The natural knit's rest quantities taken from its start's own (λ = 0)
+    to its own (λ = 1), linearly in λ: the rest line element |X'| at every
+    quadrature point, and every crossing's held separation (and, for a fixed
+    crossing, its two tangential invariants). At λ = 0 the start is
+    stretch-free and keeps its crossings exactly, whatever its template
+    scale or loop length; only its bending (κ₀ = 0) pulls on it. The mass
+    stays the rest's."""
+
+    def __init__(self, system, x0):
+        el, X0 = system.elements, system.fabric.start_points()
+        self.el, self.sets = el, []
+        start = np.linalg.norm(el.tangents(system.yarn_points(x0))[:, :, 0], axis=-1)
+        self.jac = (start, el.jac.copy())
+        self.end = el.Xp2.copy(), el.W.copy()
+        cons = system.constraints
+        for part in (cons.local, cons.reaching):
+            g = part.values(X0[part.cols])
+            if hasattr(part, "rest"):            # fixed: g = s (u·v − c)
+                self.sets.append((part.rest, g / part.scale + part.rest,
+                                  part.rest.copy()))
+            else:                                # sliding: g = (|r|² − δ²)/2δ
+                d = part.delta
+                self.sets.append((d, np.sqrt(2 * d * g[:, 0] + d * d), d.copy()))
+
+    def set(self, lam, lengths=None):
+        """Rest quantities at λ, the line elements at ``lengths`` (default λ)
+        (written into the model's arrays in place: the kernels and
+        constraints read them there)."""
+        el = self.el
+        mu = lam if lengths is None else lengths
+        jac = (1 - mu) * self.jac[0] + mu * self.jac[1]
+        el.jac[:] = jac
+        el.Xp2[:], el.W[:] = (jac * jac, el.weights * jac) if mu < 1 else self.end
+        for target, start, end in self.sets:
+            target[:] = (1 - lam) * start + lam * end
+
+
+class Relaxation:
+    """A relaxation in ``steps`` load steps, for ``run.simulation.Simulation``
+    as its integrator over the pseudo-time t ∈ [0, 1]: the step to t takes the
+    rest quantities to λ = t (``Ramp``) and the knit to its constrained
+    energy minimum there (``solvers.statics_descent``), to a residual
+    acceleration of ``accel`` [m/s²] at λ = 1 and of 10³ accel before. The
+    steps before the last add a spring ½ c_k |ε − X|²_M to the natural rest
+    X (the template at the loop length asked), c_k = c₀ 100^(−k) for step
+    k = 0, 1, …, c₀ = 0.1 EI / (ρ r⁴) (the bending stiffness of a wavelength
+    of a few yarn radii): a start far from X (a stretched template) is first
+    drawn to X's shape and then let go, so every start takes the path the
+    template's own takes, and ends in the same minimum (the yarn contact
+    makes more than one). The velocity stays zero."""
+
+    name = "relax"
+
+    def __init__(self, system, steps=4, accel=1e-4):
+        from solvers.statics_descent import ConstrainedDescent
+
+        self.system, self.dt, self.accel = system, 1.0 / steps, accel
+        x0 = system.start_state()
+        self.ramp = Ramp(system, x0)
+        x0.destroy()
+        self.solver = ConstrainedDescent(system)
+        m, r = system.material, system.fabric.radius
+        self.guide = 0.1 * m.EI / (m.rho * r**4)
+        self.target = system.rest_state()
+
+    def step(self, t, x, v, t_stop=None):
+        """Load step from t to min(t + dt, t_stop, 1); the stats of
+        ``Simulation``. Without t_stop (the step from rest that a restart
+        takes and throws away, for a time integrator's solver choices) it
+        moves nothing."""
+        if t_stop is None:
+            return dict(dt=0.0, newton=0, ksp=0, rejected=0, linear_failures=0)
+        lam = min(t + self.dt, t_stop, 1.0)
+        if 1.0 - lam < 1e-9:
+            lam = 1.0
+        self.ramp.set(lam, lengths=1.0)
+        self.solver.guide_to(self.target, 0.0 if lam == 1.0 else
+                             self.guide * 100.0 ** (-round(t / self.dt)))
+        before = dict(self.solver.stats)
+        self.solver.minimize(x, self.accel if lam == 1.0 else 1e3 * self.accel)
+        v.zeroEntries()
+        st = {k: self.solver.stats[k] - before[k] for k in before}
+        return dict(dt=lam - t, newton=st["newton"], ksp=st["ksp"],
+                    rejected=st["rejected"], linear_failures=0)
+
+    def state(self):
+        """The multipliers (this rank's) and the shift, for a checkpoint."""
+        return dict(mu=self.solver.mu.getArray(readonly=True).copy(),
+                    sigma=self.solver.sigma or 0.0)
+
+    def set_state(self, state):
+        self.solver.mu.getArray()[:] = state["mu"]
+        self.solver.sigma = float(state["sigma"]) or None
 
 
 def stress_free(fabric):
@@ -114,6 +211,7 @@ class RelaxedKnit:
     separation: float
     loop_length: float
     source: str = ""
+    yarn_contact: bool = True
 
     def save(self, path):
         """Write relaxed.h5 (call on one rank)."""
@@ -122,7 +220,8 @@ class RelaxedKnit:
         def fill(f):
             f.attrs.update(version=VERSION, rows=self.rows, cols=self.cols,
                            shape=self.shape, radius=self.radius,
-                           separation=self.separation, loop_length=self.loop_length)
+                           separation=self.separation, loop_length=self.loop_length,
+                           yarn_contact=self.yarn_contact)
             f["rest"], f["positions"] = self.rest, self.positions
             for name, values in zip(("yarn_a", "s_a", "yarn_b", "s_b"),
                                     self.contacts):
@@ -149,7 +248,7 @@ class RelaxedKnit:
                            tuple(f[f"contacts/{n}"][()] for n in
                                  ("yarn_a", "s_a", "yarn_b", "s_b")),
                            float(a["separation"]), float(a["loop_length"]),
-                           source=str(path))
+                           source=str(path), yarn_contact=bool(a["yarn_contact"]))
         except (OSError, KeyError) as err:
             raise ValueError(f"cannot read a relaxed knit ({err})") from None
 
