@@ -30,10 +30,13 @@ same ring (contacts computed once, translated), the tube's ends are level,
 and whole yarns still spread over the ranks.
 """
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from knitfem.knit import stitches
+from knitfem.knit.chart import Chart
 from knitfem.yarn import bspline
 
 __all__ = ["LoopShape", "Jersey", "SHAPES", "min_yarn_distance"]
@@ -76,10 +79,15 @@ class Jersey:
     """
 
     def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat",
-                 rest=None):
+                 rest=None, chart=None):
         if knit not in SHAPES:
             raise ValueError(f"knit shape {knit!r}: use one of {', '.join(SHAPES)}")
         self.rows, self.cols = int(rows), int(cols)
+        self.chart = Chart(np.zeros((self.rows, self.cols), bool)) if chart is None \
+            else chart
+        if self.chart.shape != (self.rows, self.cols):
+            raise ValueError(f"a chart of {self.chart.rows}x{self.chart.cols} stitches "
+                             f"for a knit of {self.rows}x{self.cols}")
         self.radius, self.shape, self.knit = float(radius), shape, knit
         self.rest = rest
         self.scale = self.radius / shape.r
@@ -96,8 +104,11 @@ class Jersey:
         return (np.asarray(t) - T0) / DT
 
     def control_points(self, f):
-        """Rest control points (n_f, 3) of yarn f, interpolating γ_f (γ̃_f on a
-        tube) at the junctions."""
+        """Rest control points (n_f, 3) of yarn f: a jersey's interpolate γ_f
+        (γ̃_f on a tube) at the junctions; a pattern's are the opened template
+        of its knits and purls (``pattern_points``)."""
+        if not self.chart.jersey:
+            return self.scale * pattern_points(self.chart, self.knit, self.shape)[f]
         if self.closed:
             t = T0 + (np.arange(self.ncp) - 1) * DT
             return bspline.periodic_interpolant(self.centreline(t, f))
@@ -117,22 +128,25 @@ class Jersey:
         """Rest control points of all yarns, (r · n_f, 3), yarn after yarn."""
         return np.concatenate([self.control_points(f) for f in range(self.rows)])
 
-    def centreline(self, t, f):
+    def centreline(self, t, f, z=None):
         """The closed-form jersey curve γ_f(t) (γ̃_f on a tube) in metres,
-        (len(t), 3)."""
+        (len(t), 3), or the curve with the depths z (units of the shape)."""
         s, t = self.shape, np.asarray(t, dtype=float)
-        x, y, z = t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w, s.d * np.cos(2 * t)
+        x, y = t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w
+        z = s.d * np.cos(2 * t) if z is None else z
         if self.closed:
             theta = (x - T0) / self.cols
             x, z = (self.cols + z) * np.sin(theta), (self.cols + z) * np.cos(theta)
         return self.scale * np.stack([x, y, z], axis=-1)
 
     def contacts(self):
-        """Interlock contacts between courses k and k + 1.
-
-        Two a stitch: the head of course k (t = 2πj) passes the two legs of
-        course k + 1. Each contact is the closest approach of the two splines,
-        refined by Newton from t_a = 2πj ± 0.99, t_b = 2πj ± 2.16.
+        """Interlock contacts, two a stitch: stitch j of course k + 1 passes
+        the head of its parent, stitch j of course k, on either side. Each
+        contact is the closest approach of the two splines near that stitch:
+        the nearest pair of points on a grid of t_a = 2πj ± [0.3, 1.7] (the
+        parent's head) and t_b = 2πj ± [1.4, 3.0] (the stitch's leg),
+        refined by Newton (the jersey's at t_a = 2πj ± 0.99, t_b = 2πj ±
+        2.16; a purl's the knit's mirrored, at the same parameters).
 
         Returns
         -------
@@ -140,20 +154,61 @@ class Jersey:
             Course k; the contact is P_k(s_a) − P_{k+1}(s_b) = d_ab.
         s_a, s_b : (nct,) float
         """
-        if self.rows < 2:
-            return np.zeros(0, int), np.zeros(0), np.zeros(0)
-        j = np.arange(self.cols)
-        ta = (2 * np.pi * j[:, None] + np.array([-0.99, 0.99])).ravel()
-        tb = (2 * np.pi * j[:, None] + np.array([-2.16, 2.16])).ravel()
-        Pa, Pb = self.control_points(0), self.control_points(1)
-        sa, sb = closest_approach(Pa, Pb, self.parameter(ta), self.parameter(tb),
-                                  closed=self.closed)
-        k = np.repeat(np.arange(self.rows - 1), sa.size)
-        return k, np.tile(sa, self.rows - 1), np.tile(sb, self.rows - 1)
+        side = np.array([-1.0, 1.0])[:, None]
+        head = 2 * np.pi * np.arange(self.cols)[:, None, None] \
+            + side * np.linspace(0.3, 1.7, 15)
+        leg = 2 * np.pi * np.arange(self.cols)[:, None, None] \
+            + side * np.linspace(1.4, 3.0, 17)
+        ga, gb = self.parameter(head).reshape(-1, 15), self.parameter(leg).reshape(-1, 17)
+        P = [self.control_points(f) for f in range(self.rows)]
+        pairs = []
+        for k in range(self.rows - 1):
+            A = bspline.curve_points(P[k], ga, closed=self.closed)
+            B = bspline.curve_points(P[k + 1], gb, closed=self.closed)
+            d = np.linalg.norm(A[:, :, None] - B[:, None], axis=-1).reshape(len(ga), -1)
+            ia, ib = np.divmod(np.argmin(d, axis=1), gb.shape[1])
+            n = np.arange(len(ga))
+            pairs.append(closest_approach(P[k], P[k + 1], ga[n, ia], gb[n, ib],
+                                          closed=self.closed))
+        ta = ga[:, 0]
+        k = np.repeat(np.arange(self.rows - 1), ta.size)
+        if not pairs:
+            return k, np.zeros(0), np.zeros(0)
+        return k, *(np.concatenate(s) for s in zip(*pairs))
 
     def heads(self, f):
         """Spline parameters of the nc loop heads of yarn f (t = 2πj)."""
         return self.parameter(2 * np.pi * np.arange(self.cols))
+
+
+@functools.lru_cache(maxsize=16)
+def pattern_points(chart, knit, shape):
+    """Control points of every course of ``chart`` knitted ``knit`` (flat or
+    tube) with loops ``shape``, in the shape's units (a list of (n_f, 3)):
+    the jersey's x and y with the depths of its knits and purls
+    (``stitches.depths``), opened until no two yarns are within 2r
+    (``clearance.open_up``). Computed once for a chart."""
+    from knitfem.knit.clearance import open_up
+    from knitfem.knit.fabric import Fabric
+
+    unit = Jersey(chart.rows, chart.cols, shape.r, shape, knit)
+    closed = unit.closed
+    sym = bspline.junction_symbol(2 * DT)
+    X = []
+    for f in range(chart.rows):
+        P = unit.control_points(f) / unit.scale
+        z = stitches.depths(chart.purl, f, len(P), closed, shape.d) / sym
+        if closed:      # the flat depths' junction values, wrapped round the tube
+            t = T0 + (np.arange(len(P)) - 1) * DT
+            z = (np.roll(z, 1) + 4 * z + np.roll(z, -1)) / 6
+            P = bspline.periodic_interpolant(unit.centreline(t, f, z) / unit.scale)
+        else:
+            P[:, 2] = z
+        X.append(P)
+    fabric = Fabric(X, shape.r, closed=closed)
+    opened = open_up(fabric)
+    return [opened[fabric.yarn_start[f]:fabric.yarn_start[f + 1]]
+            for f in range(chart.rows)]
 
 
 def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
