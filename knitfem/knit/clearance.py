@@ -11,10 +11,11 @@ x = S P the centreline samples (``Fabric.sampling``), the pairs (i, j) those
 of ``gaps.YarnGaps`` (different yarns, or one yarn more than 8 r apart along
 it) closer than δ = 2.1 r, L the second differences of each yarn's control
 points (wrapping round a closed yarn) and P₀ the template. E is minimised by
-L-BFGS, in rounds of ``ROUND`` iterations, until the smallest gap is 2r.
-The moves are continuous from a start whose gaps are all positive, and each
-round ends where E, which grows as two yarns close in, has decreased: no yarn
-is moved through another (the tests check each crossing's depth order).
+L-BFGS, in rounds of ``ROUND`` iterations, until no two samples are closer
+than 2.1 r: 5 % beyond touching, and past the yarn contact's barrier band.
+The start has every crossing the right way round and all its gaps positive,
+and the moves only push close pairs apart: the tests check that every
+crossing keeps its depth order.
 """
 
 import numpy as np
@@ -24,8 +25,9 @@ from knitfem.yarn.curves import Samples
 
 __all__ = ["open_up", "CLEARANCE"]
 
-CLEARANCE = 2.1
-"""δ / r: the pairs are pushed 5 % beyond touching."""
+CLEARANCE, ENOUGH = 2.25, 2.1
+"""δ / r, and the smallest distance / r at which the opening stops: 5 %
+beyond touching, past the yarn contact's barrier band (0.072 r)."""
 SMOOTH, STAY = 1e-2, 1e-4
 """λ and μ, against the squared gap deficits (lengths in units of r ~ 1)."""
 SAMPLES = 8
@@ -50,7 +52,7 @@ def second_differences(fabric):
 
 def open_up(fabric):
     """Control points (N, 3) of ``fabric`` (whose yarn radius sets r) moved
-    until every gap is at least 2r (module docstring); RuntimeError if
+    until every gap is at least 2.1 r (module docstring); RuntimeError if
     ``ROUNDS`` rounds do not get there."""
     from scipy import optimize
 
@@ -80,10 +82,10 @@ def open_up(fabric):
 
     P = X0.copy()
     for _ in range(ROUNDS):
-        if gaps.frame(S @ P) >= 1.0:
+        if not len(gaps.pairs(S @ P, ENOUGH * fabric.radius)[2]):
             return P
         P = optimize.minimize(energy, P.ravel(), jac=True, method="L-BFGS-B",
                               options=dict(maxiter=ROUND)).x.reshape(-1, 3)
-    raise RuntimeError(f"the template could not be opened to 2r within "
+    raise RuntimeError(f"the template could not be opened to 2.1 r within "
                        f"{ROUNDS * ROUND} iterations (smallest gap "
                        f"{gaps.frame(S @ P):.3f} x 2r)")

@@ -154,31 +154,33 @@ class Jersey:
             Course k; the contact is P_k(s_a) − P_{k+1}(s_b) = d_ab.
         s_a, s_b : (nct,) float
         """
-        side = np.array([-1.0, 1.0])[:, None]
-        head = 2 * np.pi * np.arange(self.cols)[:, None, None] \
-            + side * np.linspace(0.3, 1.7, 15)
-        leg = 2 * np.pi * np.arange(self.cols)[:, None, None] \
-            + side * np.linspace(1.4, 3.0, 17)
-        ga, gb = self.parameter(head).reshape(-1, 15), self.parameter(leg).reshape(-1, 17)
-        P = [self.control_points(f) for f in range(self.rows)]
-        pairs = []
-        for k in range(self.rows - 1):
-            A = bspline.curve_points(P[k], ga, closed=self.closed)
-            B = bspline.curve_points(P[k + 1], gb, closed=self.closed)
-            d = np.linalg.norm(A[:, :, None] - B[:, None], axis=-1).reshape(len(ga), -1)
-            ia, ib = np.divmod(np.argmin(d, axis=1), gb.shape[1])
-            n = np.arange(len(ga))
-            pairs.append(closest_approach(P[k], P[k + 1], ga[n, ia], gb[n, ib],
-                                          closed=self.closed))
-        ta = ga[:, 0]
-        k = np.repeat(np.arange(self.rows - 1), ta.size)
-        if not pairs:
-            return k, np.zeros(0), np.zeros(0)
-        return k, *(np.concatenate(s) for s in zip(*pairs))
+        return interlocks([self.control_points(f) for f in range(self.rows)],
+                          self.cols, self.closed)
 
     def heads(self, f):
         """Spline parameters of the nc loop heads of yarn f (t = 2πj)."""
         return self.parameter(2 * np.pi * np.arange(self.cols))
+
+
+def interlocks(P, cols, closed):
+    """The contacts (``Jersey.contacts``) of courses with control points P
+    (a list of (n_f, 3)) of ``cols`` stitches each: (course k, s_a, s_b)."""
+    side = np.array([-1.0, 1.0])[:, None]
+    stitch = 2 * np.pi * np.arange(cols)[:, None, None]
+    ga = ((stitch + side * np.linspace(0.3, 1.7, 15) - T0) / DT).reshape(-1, 15)
+    gb = ((stitch + side * np.linspace(1.4, 3.0, 17) - T0) / DT).reshape(-1, 17)
+    n = np.arange(len(ga))
+    sa, sb = [np.zeros(0)], [np.zeros(0)]
+    for k in range(len(P) - 1):
+        A = bspline.curve_points(P[k], ga, closed=closed)
+        B = bspline.curve_points(P[k + 1], gb, closed=closed)
+        d = np.linalg.norm(A[:, :, None] - B[:, None], axis=-1).reshape(len(ga), -1)
+        ia, ib = np.divmod(np.argmin(d, axis=1), gb.shape[1])
+        a, b = closest_approach(P[k], P[k + 1], ga[n, ia], gb[n, ib], closed=closed)
+        sa.append(a)
+        sb.append(b)
+    return (np.repeat(np.arange(max(len(P) - 1, 0)), len(ga)), np.concatenate(sa),
+            np.concatenate(sb))
 
 
 @functools.lru_cache(maxsize=16)
@@ -186,7 +188,7 @@ def pattern_points(chart, knit, shape):
     """Control points of every course of ``chart`` knitted ``knit`` (flat or
     tube) with loops ``shape``, in the shape's units (a list of (n_f, 3)):
     the jersey's x and y with the depths of its knits and purls
-    (``stitches.depths``), opened until no two yarns are within 2r
+    (``stitches.depths``), opened until no two yarns are within 2.1 r
     (``clearance.open_up``). Computed once for a chart."""
     from knitfem.knit.clearance import open_up
     from knitfem.knit.fabric import Fabric
