@@ -9,11 +9,11 @@ minimum of
 
 x = S P the centreline samples (``Fabric.sampling``), the pairs (i, j) those
 of ``gaps.YarnGaps`` (different yarns, or one yarn more than 8 r apart along
-it) closer than δ = 2.1 r, L the second differences of each yarn's control
+it) closer than δ = 2.25 r, L the second differences of each yarn's control
 points (wrapping round a closed yarn) and P₀ the template. E is minimised by
 L-BFGS, in rounds of ``ROUND`` iterations, until no two samples are closer
-than 2.1 r: 5 % beyond touching, and past the yarn contact's barrier band.
-The start has every crossing the right way round and all its gaps positive,
+than 2.08 r: 4 % beyond touching, as a jersey's, and past the yarn contact's
+barrier band (0.072 r). The start has every crossing the right way round and all its gaps positive,
 and the moves only push close pairs apart: the tests check that every
 crossing keeps its depth order.
 """
@@ -25,9 +25,8 @@ from knitfem.yarn.curves import Samples
 
 __all__ = ["open_up", "CLEARANCE"]
 
-CLEARANCE, ENOUGH = 2.25, 2.1
-"""δ / r, and the smallest distance / r at which the opening stops: 5 %
-beyond touching, past the yarn contact's barrier band (0.072 r)."""
+CLEARANCE, ENOUGH = 2.25, 2.08
+"""δ / r, and the smallest distance / r at which the opening stops."""
 SMOOTH, STAY = 1e-2, 1e-4
 """λ and μ, against the squared gap deficits (lengths in units of r ~ 1)."""
 SAMPLES = 8
@@ -52,7 +51,7 @@ def second_differences(fabric):
 
 def open_up(fabric):
     """Control points (N, 3) of ``fabric`` (whose yarn radius sets r) moved
-    until every gap is at least 2.1 r (module docstring); RuntimeError if
+    until every gap is at least 2.08 r (module docstring); RuntimeError if
     ``ROUNDS`` rounds do not get there."""
     from scipy import optimize
 
@@ -86,6 +85,6 @@ def open_up(fabric):
             return P
         P = optimize.minimize(energy, P.ravel(), jac=True, method="L-BFGS-B",
                               options=dict(maxiter=ROUND)).x.reshape(-1, 3)
-    raise RuntimeError(f"the template could not be opened to 2.1 r within "
+    raise RuntimeError(f"the template could not be opened to 2.08 r within "
                        f"{ROUNDS * ROUND} iterations (smallest gap "
                        f"{gaps.frame(S @ P):.3f} x 2r)")

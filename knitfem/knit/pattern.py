@@ -188,7 +188,7 @@ def pattern_points(chart, knit, shape):
     """Control points of every course of ``chart`` knitted ``knit`` (flat or
     tube) with loops ``shape``, in the shape's units (a list of (n_f, 3)):
     the jersey's x and y with the depths of its knits and purls
-    (``stitches.depths``), opened until no two yarns are within 2.1 r
+    (``stitches.depths``), opened until no two yarns are within 2.08 r
     (``clearance.open_up``). Computed once for a chart."""
     from knitfem.knit.clearance import open_up
     from knitfem.knit.fabric import Fabric
