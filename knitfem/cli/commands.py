@@ -601,12 +601,14 @@ def run(comm):
             problem["friction"] = friction
         if getattr(system, "shell", None) is not None:
             problem["stretch"] = "shell"
+        knitted = {"chart": problem["chart"]} if "chart" in problem else {}
         sim = Simulation(system, integrator, out=out, scene=name,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
-                         painter=painter, slow_step=slow, report=scene.report())
+                         painter=painter, slow_step=slow,
+                         report=dict(scene.report(), **knitted))
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

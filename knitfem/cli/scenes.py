@@ -202,7 +202,8 @@ class Scene:
         if not self.knitted:
             shape = {}
         else:
-            shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit)
+            shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit,
+                         chart=jersey.chart.text())
         return dict(scene=self.name, radius=jersey.radius, **shape, **self.params)
 
 
