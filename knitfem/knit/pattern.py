@@ -1,8 +1,9 @@
-"""Jersey (plain-knit) pattern: yarn control points and contact parameters.
+"""Knitted fabrics: yarn control points and contact parameters of a chart
+of knit and purl stitches (plain jersey the chart of knits only).
 
 A fabric of r rows (courses) × nc columns (stitches) is r yarns, one per
-course. In units where a stitch is 2π wide the centreline of course f is the
-plain-knit curve
+course. In units where a stitch is 2π wide the centreline of course f of a
+jersey is the plain-knit curve
 
     γ_f(t) = (t + a sin 2t,  h cos t + f w,  d cos 2t),   t ∈ [−π, 2π nc − π],
 
@@ -10,11 +11,28 @@ x along the courses, y along the wales (up), z through the thickness. The
 loop heads sit at t = 2πj, j = 0 … nc − 1; a yarn starts and ends at a
 sinker loop (t = −π mod 2π).
 
+Face and back. The heads and sinkers lie at +z, the legs at −z: the legs
+show as V's on the −z side, the technical face, and the heads and sinkers
+as purl bumps on the +z side, the technical back. Stitch j of course f + 1
+is a knit, as seen from the face, when its loop is pulled through its
+parent (stitch j of course f) towards the face: its legs pass in front of
+(−z of) the parent's head, its sinkers behind (+z of) the parent's legs.
+A purl is the loop pulled through from the other side: the knit's loop
+mirrored through the mid-plane z = 0, its legs behind the parent's head and
+its sinkers in front of its legs. A chart (``knit.chart``: rows bottom
+first, each read from the face left to right) sets every stitch; the depths
+of a course's control points follow its stitches and those above them,
+blended across the sinker where a knit meets a purl (``knit.stitches``),
+and the template is then opened until no yarn comes within 2r of another
+(``knit.clearance``). Its crossings, found per stitch as the closest
+approach of the two yarns there (``interlocks``), hold the rest offsets of
+that geometry: a purl's are the knit's flipped through the thickness.
+
 Each yarn is a uniform cubic B-spline with 8 segments a stitch, so
 n_f = 8 nc + 3 control points. Control point i sits at t_i = −π + (i − 1)Δ,
 Δ = 2π/8; each harmonic of γ is divided by the junction symbol
-(4 + 2 cos ωΔ)/6 so that the spline interpolates γ at every segment junction.
-Physical lengths are the unit lengths times ``radius / r``.
+(4 + 2 cos ωΔ)/6 so that the jersey's spline interpolates γ at every segment
+junction. Physical lengths are the unit lengths times ``radius / r``.
 
 Knitted in the round (``shape="tube"``) every course closes on itself: the
 flat curve is wrapped around the y axis, x onto the angle θ = (x − t₀)/nc and
@@ -23,11 +41,13 @@ z onto the radius, on a circle of nc units (a course's 2π nc around),
     γ̃_f(t) = ((nc + z) sin θ,  y,  (nc + z) cos θ),   (x, y, z) = γ_f(t),
 
 and each yarn is a closed cubic B-spline of n_f = 8 nc control points, one
-a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``).
-The front of the knit (+z) faces outwards. We chose closed courses over
+a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``;
+a pattern's depths are those of its flat course at the junctions). The
+technical back (+z) faces outwards: a tube is seen from outside inside out,
+its chart still read from the face. We chose closed courses over
 the single helical yarn of a circular knitting machine: every course is the
-same ring (contacts computed once, translated), the tube's ends are level,
-and whole yarns still spread over the ranks.
+same ring, the tube's ends are level, and whole yarns still spread over the
+ranks.
 """
 
 import functools
@@ -63,7 +83,8 @@ class LoopShape:
 
 
 class Jersey:
-    """Geometry of an r × nc jersey: control points, contacts, fixed points.
+    """Geometry of an r × nc knit, a jersey unless its chart has purls:
+    control points, contacts, fixed points.
 
     Parameters
     ----------
@@ -76,6 +97,8 @@ class Jersey:
         A flat swatch of open courses, or a tube knitted in the round.
     rest : a relaxed knit of these stitches (``run.relax.RelaxedKnit``) its
         fabrics start from, or None for the stress-free template.
+    chart : knit.chart.Chart of rows × cols, or None for a jersey
+        Knit or purl for every stitch, as seen from the face.
     """
 
     def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat",
