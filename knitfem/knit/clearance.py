@@ -15,7 +15,10 @@ L-BFGS, in rounds of ``ROUND`` iterations, until no two samples are closer
 than 2.08 r: 4 % beyond touching, as a jersey's, and past the yarn contact's
 barrier band (0.072 r). The start has every crossing the right way round and all its gaps positive,
 and the moves only push close pairs apart: the tests check that every
-crossing keeps its depth order.
+crossing keeps its depth order. ``hold_crossings`` then moves the two yarns
+of every crossing the least that puts them a given distance apart (a
+jersey's, so that a pattern's template is as near its crossings' 2r as a
+jersey's is).
 """
 
 import numpy as np
@@ -23,7 +26,7 @@ import numpy as np
 from knitfem.contact.gaps import YarnGaps
 from knitfem.yarn.curves import Samples
 
-__all__ = ["open_up", "CLEARANCE"]
+__all__ = ["open_up", "hold_crossings", "CLEARANCE"]
 
 CLEARANCE, ENOUGH = 2.25, 2.08
 """δ / r, and the smallest distance / r at which the opening stops."""
@@ -88,3 +91,32 @@ def open_up(fabric):
     raise RuntimeError(f"the template could not be opened to 2.08 r within "
                        f"{ROUNDS * ROUND} iterations (smallest gap "
                        f"{gaps.frame(S @ P):.3f} x 2r)")
+
+
+def hold_crossings(fabric, held, tol, iterations=50):
+    """Control points (N, 3) of ``fabric`` moved the least that puts the two
+    points of every crossing (``Fabric.contacts``) ``held`` apart:
+    Gauss–Newton steps of least norm on φ_c = |r_c| − held, r_c = P_a(s_a) −
+    P_b(s_b), ΔP = −Jᵀ (J Jᵀ)⁻¹ φ. RuntimeError if they do not converge."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    ya, sa, yb, sb = fabric.contacts
+    (ca, wa), (cb, wb) = fabric.point_rows(ya, sa), fabric.point_rows(yb, sb)
+    cols = np.concatenate([ca, cb], axis=1)                 # (n, 8)
+    w = np.concatenate([wa, -wb], axis=1)
+    n = len(cols)
+    rows = np.repeat(np.arange(n), 24)
+    P = fabric.X.copy()
+    for _ in range(iterations):
+        r = np.einsum("nk,nkd->nd", w, P[cols])
+        dist = np.linalg.norm(r, axis=1)
+        phi = dist - held
+        if not n or np.abs(phi).max() < tol:
+            return P
+        J = sparse.csr_matrix(((w[:, :, None] * (r / dist[:, None])[:, None, :]).ravel(),
+                               (rows, (3 * cols[:, :, None] + np.arange(3)).ravel())),
+                              shape=(n, P.size))
+        P -= (J.T @ spsolve((J @ J.T).tocsc(), phi)).reshape(-1, 3)
+    raise RuntimeError(f"the crossings cannot be held {held:g} apart (off by "
+                       f"{np.abs(phi).max():.3g})")

@@ -23,10 +23,11 @@ its sinkers in front of its legs. A chart (``knit.chart``: rows bottom
 first, each read from the face left to right) sets every stitch; the depths
 of a course's control points follow its stitches and those above them,
 blended across the sinker where a knit meets a purl (``knit.stitches``),
-and the template is then opened until no yarn comes within 2r of another
-(``knit.clearance``). Its crossings, found per stitch as the closest
-approach of the two yarns there (``interlocks``), hold the rest offsets of
-that geometry: a purl's are the knit's flipped through the thickness.
+and the template is then opened until no yarn comes within 2r of another,
+its crossings as far apart as a jersey's (``knit.clearance``). The
+crossings, found per stitch as the closest approach of the two yarns there
+(``interlocks``), hold the rest offsets of that geometry: a purl's are the
+knit's flipped through the thickness.
 
 Each yarn is a uniform cubic B-spline with 8 segments a stitch, so
 n_f = 8 nc + 3 control points. Control point i sits at t_i = −π + (i − 1)Δ,
@@ -212,8 +213,9 @@ def pattern_points(chart, knit, shape):
     tube) with loops ``shape``, in the shape's units (a list of (n_f, 3)):
     the jersey's x and y with the depths of its knits and purls
     (``stitches.depths``), opened until no two yarns are within 2.08 r
-    (``clearance.open_up``). Computed once for a chart."""
-    from knitfem.knit.clearance import open_up
+    (``clearance.open_up``), the yarns of each crossing then as far apart as
+    a jersey's (``clearance.hold_crossings``). Computed once for a chart."""
+    from knitfem.knit.clearance import hold_crossings, open_up
     from knitfem.knit.fabric import Fabric
 
     unit = Jersey(chart.rows, chart.cols, shape.r, shape, knit)
@@ -231,7 +233,15 @@ def pattern_points(chart, knit, shape):
             P[:, 2] = z
         X.append(P)
     fabric = Fabric(X, shape.r, closed=closed)
-    opened = open_up(fabric)
+    fabric.X = open_up(fabric)
+    k, sa, sb = interlocks(np.split(fabric.X, fabric.yarn_start[1:-1]), chart.cols,
+                           closed)
+    fabric.contacts = (k, sa, k + 1, sb)
+    two = Jersey(2, 1, shape.r, shape)
+    _, sa, sb = two.contacts()
+    held = np.linalg.norm(bspline.curve_points(two.control_points(0), sa[:1])
+                          - bspline.curve_points(two.control_points(1), sb[:1]))
+    opened = hold_crossings(fabric, held, 1e-12 * shape.r)
     return [opened[fabric.yarn_start[f]:fabric.yarn_start[f + 1]]
             for f in range(chart.rows)]
 
