@@ -247,8 +247,9 @@ def pattern_points(chart, knit, shape):
 
 
 def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
-    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised
-    (s read modulo the segments on closed curves, else kept in them)."""
+    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised,
+    steps capped at a quarter segment (s read modulo the segments on closed
+    curves, else kept in them)."""
     na, nb = bspline.segments(len(Pa), closed), bspline.segments(len(Pb), closed)
 
     def at(P, s, nu):
@@ -263,7 +264,7 @@ def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
         H[:, 0, 0] = np.sum(A1 * A1 + D * A2, -1)
         H[:, 1, 1] = np.sum(B1 * B1 - D * B2, -1)
         H[:, 0, 1] = H[:, 1, 0] = -np.sum(A1 * B1, -1)
-        step = np.linalg.solve(H, g[..., None])[..., 0]
+        step = np.clip(np.linalg.solve(H, g[..., None])[..., 0], -0.25, 0.25)
         sa, sb = sa - step[:, 0], sb - step[:, 1]
         sa, sb = (np.mod(sa, na), np.mod(sb, nb)) if closed else \
             (np.clip(sa, 0, na), np.clip(sb, 0, nb))
