@@ -12,6 +12,7 @@ import pytest
 from mpi4py import MPI
 
 from knitfem.knit.pattern import Jersey, jersey_fabric
+from knitfem.contact import constraints
 from knitfem.run.relax import RelaxedKnit, natural_fabric, stress_free, yarn_lengths
 from knitfem.yarn.elements import YarnElements
 
@@ -35,10 +36,14 @@ def test_natural_fabric_has_the_loop_length_asked_and_no_natural_curvature():
     el = YarnElements(fab.X, fab.connectivity(0, fab.nyarn), 1, 1, 1,
                       natural=fab.natural)
     assert not el.kappa0.any() and fab.separation == 2 * j.radius
-    # the start is the rest stretched along the courses about its centroid
+    # the start is the rest stretched along the courses about its centroid,
+    # moved the least that holds the crossings 2r apart (0.73 r here)
     c = template.X.mean(axis=0)
     assert np.allclose(fab.start_X - c, (fab.X - c) * [1.2, 1.0, 1.0],
-                       rtol=0, atol=1e-15)
+                       rtol=0, atol=j.radius)
+    contacts, _ = constraints.build(fab)
+    # measured 5.7e-18 m
+    assert np.abs(contacts.values(fab.start_X[contacts.cols])).max() < 1e-12 * j.radius
     back = stress_free(fab)
     assert back.X is fab.start_X and not back.natural and back.separation is None
 
@@ -119,8 +124,9 @@ def test_relax_options_take_effect(tmp_path):
     first = series.read_data(0)[1]["position"]
     template = jersey_fabric(Jersey(3, 3)).curves(jersey_fabric(Jersey(3, 3)).X)
     width = np.ptp(template.samples(8).points[:, 0])
-    # the start: the template scaled to the loop length, then along the courses
-    assert np.ptp(first[:, 0]) == pytest.approx(1.01 * 17 / 16.8172 * width, rel=1e-3)
+    # the start: the template scaled to the loop length, then along the courses,
+    # then moved to hold its crossings (1.8e-3 of its width)
+    assert np.ptp(first[:, 0]) == pytest.approx(1.01 * 17 / 16.8172 * width, rel=5e-3)
 
 
 def test_an_interrupted_relaxation_continues_as_it_says(tmp_path):

@@ -175,6 +175,30 @@ def contacts(yarn_a, s_a, yarn_b, s_b, fabric, X, separation=None):
     return Contacts(np.asarray(yarn_a), cols, U, V, scale, rest)
 
 
+def satisfied(contacts, P, tol, iterations=50):
+    """Control points P (N, 3) moved the least that makes ``contacts`` hold,
+    g(P) = 0 to ``tol``: Gauss–Newton steps of least norm,
+    ΔP = −Jᵀ (J Jᵀ)⁻¹ g, J = ∂g/∂P (a start consistent with the
+    constraints). ValueError if they do not converge."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    P = np.array(P, dtype=float)
+    n = contacts.count
+    rows = np.broadcast_to(np.arange(3 * n).reshape(n, 3, 1, 1), (n, 3, 8, 3))
+    cols = np.broadcast_to(3 * contacts.cols[:, None, :, None] + np.arange(3),
+                           (n, 3, 8, 3))
+    for _ in range(iterations):
+        g = contacts.values(P[contacts.cols])
+        if not n or np.abs(g).max() < tol:
+            return P
+        J = sparse.csr_matrix((contacts.gradients(P[contacts.cols]).ravel(),
+                               (rows.ravel(), cols.ravel())), shape=(3 * n, P.size))
+        P -= (J.T @ spsolve((J @ J.T).tocsc(), g.ravel())).reshape(-1, 3)
+    raise ValueError(f"the crossings cannot be satisfied from this start (|g| "
+                     f"{np.abs(g).max():.3g} after {iterations} steps)")
+
+
 def fixed_points(yarn, s, fabric, X, nu=0):
     """Fixed-point rows P_f(s) = x₀ (nu = 0), or clamped tangents
     P_f'(s) = X_f'(s) (nu = 1), with the right-hand side taken at X."""

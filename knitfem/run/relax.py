@@ -29,6 +29,7 @@ from dataclasses import dataclass, replace
 import h5py
 import numpy as np
 
+from knitfem.contact import constraints
 from knitfem.knit.measure import curl, loop_length, munden, spacings
 from knitfem.yarn import bspline
 
@@ -62,15 +63,19 @@ def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
     ``length`` a stitch (default: the template's): its rest X the template
     scaled uniformly to that length, its start X scaled by ``scale`` along
-    the fabric's course, wale and thickness directions about its centroid;
-    crossings held 2r apart."""
+    the fabric's course, wale and thickness directions about its centroid
+    and moved the least that makes its crossings 2r apart
+    (``constraints.satisfied``)."""
     ell = stitch_length(jersey, fabric)
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
     X = (fabric.X - centre) * ((length or ell) / ell) + centre
     S = F @ np.diag(scale) @ F.T
-    return replace(fabric, X=X, start_X=(X - centre) @ S.T + centre, natural=True,
-                   separation=2 * fabric.radius)
+    natural = replace(fabric, X=X, start_X=(X - centre) @ S.T + centre, natural=True,
+                      separation=2 * fabric.radius)
+    contacts, _ = constraints.build(natural)
+    return replace(natural, start_X=constraints.satisfied(
+        contacts, natural.start_X, 1e-12 * fabric.radius))
 
 
 def stress_free(fabric):
