@@ -59,7 +59,7 @@ test-serial:
 
 test-parallel:
 	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py tests/test_sliding.py \
-	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py \
+	  tests/test_frame.py tests/test_tube.py tests/test_shell.py tests/test_api.py tests/test_pattern.py \
 	  tests/test_yarn_contact.py tests/test_lengths.py tests/test_conservation.py
 	# the saddle tests count factorisation events: a process of their own
 	timeout 300 $(MPIRUN) $(PYTEST) tests/test_saddle.py

@@ -87,7 +87,8 @@ def jersey(hold=None, **options):
         first stitch.
     **options
         ``rows`` (7), ``cols`` (7), ``radius`` (5e-4 m), ``shape`` ("flat"
-        or "tube"): the ``-knit_`` options of the same names.
+        or "tube"), ``pattern`` ("jersey", a pattern's name, a chart or a
+        knitout file): the ``-knit_`` options of the same names.
 
     Not collective: pure geometry, the same on every rank.
     """

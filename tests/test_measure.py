@@ -59,3 +59,12 @@ def test_template_jersey_dimensions():
     cs, ws = spacings(heads)
     assert cs == pytest.approx(4.5 * j.scale, rel=1e-12)
     assert ws == pytest.approx(2 * np.pi * j.scale, rel=1e-12)
+
+
+def test_a_ribs_spacings_are_those_in_its_plane():
+    """Knit and purl wales' heads on either side of the fabric: its wales
+    are as far apart as the width they take, measured in its plane."""
+    r, c = np.indices((4, 6))
+    heads = np.stack([2.0 * c, 3.0 * r, np.where(c % 2, -1.0, 1.0)], axis=-1)
+    assert spacings(heads)[1] == pytest.approx(np.sqrt(8.0), rel=1e-15)
+    assert spacings(heads, normal=[0, 0, 1]) == (3.0, 2.0)

@@ -14,10 +14,9 @@ from knitfem.knit.pattern import HOLDS, SHAPES, Jersey, LoopShape, jersey_fabric
 __all__ = ["dofs", "pattern", "relax", "run", "deform"]
 
 
-def jersey_from_options(opts, rows=7, cols=7, any_pattern=False):
-    """The jersey declared by -knit_rows, -knit_cols, -knit_pattern (its
-    ``chart``), -knit_radius and -knit_shape; a pattern other than jersey is
-    refused unless ``any_pattern`` (its yarn geometry is not built yet)."""
+def jersey_from_options(opts, rows=7, cols=7):
+    """The knit declared by -knit_rows, -knit_cols, -knit_pattern (its
+    ``chart`` of knits and purls), -knit_radius and -knit_shape."""
     r = opts.getInt("rows", rows, "courses (rows) of stitches; one yarn each", 1)
     c = opts.getInt("cols", cols, "stitches (columns) a course (around a tube)", 1)
     spec = opts.getString("pattern", "jersey", "stitch pattern: jersey|rib1x1|"
@@ -32,18 +31,12 @@ def jersey_from_options(opts, rows=7, cols=7, any_pattern=False):
         if opts.db.hasName(name) and given != size:
             raise KnitError(f"-knit_{name} {given} contradicts -knit_pattern "
                             f"{spec}, whose chart has {size}; leave -knit_{name} out")
-    if not (chart.jersey or any_pattern):
-        raise KnitError(f"-knit_pattern {spec}: its yarn geometry (purl stitches) "
-                        "is not built yet, only jersey's; knitfem pattern "
-                        f"-knit_pattern {spec} prints its chart")
     radius = opts.getReal("radius", 5e-4, "yarn radius [m]", positive=True)
     knit = opts.getChoice("shape", "flat", SHAPES, "a flat swatch, or a tube knitted "
                           "in the round (every course closed on itself)")
     if knit == "tube" and chart.cols < 3:
         raise KnitError(f"-knit_cols {chart.cols}: a tube needs at least 3 stitches around")
-    jersey = Jersey(chart.rows, chart.cols, radius, LoopShape(), knit)
-    jersey.chart = chart
-    return jersey
+    return Jersey(chart.rows, chart.cols, radius, LoopShape(), knit, chart=chart)
 
 
 def rest_from_options(opts, jersey):
@@ -142,22 +135,20 @@ def pattern(comm):
     from knitfem import io
 
     opts = KnitOptions()
-    jersey = jersey_from_options(opts, any_pattern=True)
+    jersey = jersey_from_options(opts)
     out = opts.getOutput("out/pattern")
     if opts.finish("knitfem pattern"):
         return
     PETSc.Sys.Print(f"# {jersey.rows} courses of {jersey.cols} stitches, the "
                     f"bottom course first, read from the face\n{jersey.chart}")
-    if not jersey.chart.jersey:
-        PETSc.Sys.Print("# its yarn geometry is not built yet: no geometry written")
-        return
     output_dir(out)
     if comm.rank:
         return
     fabric = jersey_fabric(jersey)
     P = fabric.curves(fabric.X)
     dist, f, g = min_yarn_distance(P)
-    name = f"{'tube' if jersey.closed else 'jersey'}_{jersey.rows}x{jersey.cols}"
+    kind = "jersey" if jersey.chart.jersey else "pattern"
+    name = f"{'tube' if jersey.closed else kind}_{jersey.rows}x{jersey.cols}"
     base = os.path.join(out, name)
     io.write_centrelines(base + ".vtu", P, jersey.radius)
     io.draw(base + ".png", P, jersey.radius, title=name.replace("_", " "),
@@ -236,7 +227,8 @@ def relax(comm):
                             os.path.join(out.path, "relaxed.h5"))
             io.draw(os.path.join(out.path, "relaxed.png"), fabric.curves(P),
                     jersey.radius, view="three_quarter",
-                    title=f"{jersey.rows}x{jersey.cols} jersey relaxed: k_c "
+                    title=f"{jersey.rows}x{jersey.cols} "
+                          f"{'jersey' if jersey.chart.jersey else 'pattern'} relaxed: k_c "
                           f"{rec['k_c']:.2f}, k_w {rec['k_w']:.2f}")
         sim.write_summary(rec, "completed")
         if comm.rank == 0:
@@ -599,12 +591,14 @@ def run(comm):
             problem["friction"] = friction
         if getattr(system, "shell", None) is not None:
             problem["stretch"] = "shell"
+        knitted = {"chart": problem["chart"]} if "chart" in problem else {}
         sim = Simulation(system, integrator, out=out, scene=name,
                          output_every=every, snapshots=snapshots, drift_tol=drift,
                          energy_growth=growth, stall_steps=stall,
                          checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
-                         painter=painter, slow_step=slow, report=scene.report())
+                         painter=painter, slow_step=slow,
+                         report=dict(scene.report(), **knitted))
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

@@ -137,7 +137,8 @@ def sleeve(jersey, angle, duration):
     """The ``jersey`` knitted as a tube along z, centred on the origin, on an
     arm whose elbow, at the origin, bends by ``angle`` degrees over
     ``duration`` seconds (module docstring)."""
-    tube = Jersey(jersey.rows, jersey.cols, jersey.radius, jersey.shape, "tube")
+    tube = Jersey(jersey.rows, jersey.cols, jersey.radius, jersey.shape, "tube",
+                  chart=jersey.chart)
     fabric = jersey_fabric(tube)
     X = fabric.X.reshape(-1, 3)
     centre = np.array([X[:, 0].mean(), 0.5 * (X[:, 1].min() + X[:, 1].max()),
@@ -201,7 +202,8 @@ class Scene:
         if not self.knitted:
             shape = {}
         else:
-            shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit)
+            shape = dict(rows=jersey.rows, cols=jersey.cols, shape=jersey.knit,
+                         chart=jersey.chart.text())
         return dict(scene=self.name, radius=jersey.radius, **shape, **self.params)
 
 

@@ -175,6 +175,7 @@ def contacts(yarn_a, s_a, yarn_b, s_b, fabric, X, separation=None):
     return Contacts(np.asarray(yarn_a), cols, U, V, scale, rest)
 
 
+
 def fixed_points(yarn, s, fabric, X, nu=0):
     """Fixed-point rows P_f(s) = x₀ (nu = 0), or clamped tangents
     P_f'(s) = X_f'(s) (nu = 1), with the right-hand side taken at X."""

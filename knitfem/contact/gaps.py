@@ -58,21 +58,24 @@ class YarnGaps:
     def frame(self, pts):
         """D of one frame of sampled centrelines (as given to the
         constructor)."""
+        i, j, d = self.pairs(_flat(pts)[0], 2.0 * self.radius)
+        if not len(d):
+            return 1.0
+        return min(1.0, float(d.min()) / (2.0 * self.radius))
+
+    def pairs(self, P, distance):
+        """(i, j, |x_i − x_j|) of the sample pairs (points P (M, 3) of one
+        frame) closer than ``distance``, of different yarns or of one yarn
+        more than 8 r apart along it."""
         from scipy.spatial import cKDTree          # on first use
 
-        P = _flat(pts)[0]
-        r = self.radius
-        pairs = cKDTree(P).query_pairs(2.0 * r, output_type="ndarray")
-        if not len(pairs):
-            return 1.0
+        pairs = cKDTree(P).query_pairs(distance, output_type="ndarray")
         i, j = pairs[:, 0], pairs[:, 1]
         along = np.abs(self.s[i] - self.s[j])
         along = np.minimum(along, self.perimeter[i] - along)
-        keep = (self.yarn[i] != self.yarn[j]) | (along > 8.0 * r)
-        if not keep.any():
-            return 1.0
-        d = np.linalg.norm(P[i[keep]] - P[j[keep]], axis=1)
-        return min(1.0, float(d.min()) / (2.0 * r))
+        keep = (self.yarn[i] != self.yarn[j]) | (along > 8.0 * self.radius)
+        i, j = i[keep], j[keep]
+        return i, j, np.linalg.norm(P[i] - P[j], axis=1)
 
     def add(self, t, pts):
         """Measure the frame at time t; keep the smallest D and its time."""

@@ -159,18 +159,35 @@ class Fabric:
         return (self.yarn_start[yarn][:, None] + bspline.span(k, ncp, closed),
                 bspline.basis(u, nu))
 
-    def curves(self, P):
-        """The yarns with control points P (N, 3) as open splines, for output
-        and drawing (``curves.Curves``): a closed yarn's first three control
-        points repeated at its end."""
+    def _drawn(self):
+        """(index, start): the control points of the yarns as open splines
+        (``curves``), as indices into X, and their offsets."""
         extra = 3 * self.closed
         ncp = self.yarn_ncp + extra
         start = np.concatenate([[0], np.cumsum(ncp)])
         f = np.repeat(np.arange(self.nyarn), ncp)
         i = np.arange(start[-1]) - start[f]
-        index = self.yarn_start[f] + np.where(i < self.yarn_ncp[f], i,
-                                              i - self.yarn_ncp[f])
+        return self.yarn_start[f] + np.where(i < self.yarn_ncp[f], i,
+                                             i - self.yarn_ncp[f]), start
+
+    def curves(self, P):
+        """The yarns with control points P (N, 3) as open splines, for output
+        and drawing (``curves.Curves``): a closed yarn's first three control
+        points repeated at its end."""
+        index, start = self._drawn()
         return Curves(np.asarray(P).reshape(-1, 3)[index], start, self.course[index])
+
+    def sampling(self, samples):
+        """(S, start): the sparse (M, N) weights of the centreline samples
+        ``curves(P).samples(samples)`` on the control points, x = S P, and
+        the samples' offsets (nyarn + 1,)."""
+        from scipy import sparse
+
+        index, start = self._drawn()
+        S, first = Curves(index, start, self.course[index]).sampling(samples)
+        pick = sparse.csr_matrix((np.ones(len(index)), (np.arange(len(index)), index)),
+                                 shape=(len(index), self.npoints))
+        return (S @ pick).tocsr(), first
 
     def load_vector(self, yarn_start, yarn_end):
         """Generalised forces of the point loads on yarns [start, end):

@@ -38,14 +38,19 @@ def _middle(n):
     return slice(lo, hi)
 
 
-def spacings(heads):
+def spacings(heads, normal=None):
     """(course spacing, wale spacing) [m]: medians over the middle of the
     swatch of |H[r+1, c] − H[r, c]| and |H[r, c+1] − H[r, c]| for loop heads
-    ``heads`` (courses, wales, 3); NaN where the swatch has one course (one
-    wale)."""
+    ``heads`` (courses, wales, 3), in the fabric's plane where its unit
+    ``normal`` (the thickness direction) is given: a rib's knit and purl
+    heads lie on either side of it, and its wales are as far apart as the
+    width they take; NaN where the swatch has one course (one wale)."""
     H = np.asarray(heads, dtype=float)
     rows, cols = _middle(H.shape[0]), _middle(H.shape[1])
     mid = H[rows, cols]
+    if normal is not None:
+        n = np.asarray(normal, dtype=float)
+        mid = mid - np.einsum("...d,d->...", mid, n)[..., None] * n
     up = np.linalg.norm(np.diff(mid, axis=0), axis=-1)
     across = np.linalg.norm(np.diff(mid, axis=1), axis=-1)
     return (float(np.median(up)) if up.size else np.nan,

@@ -1,8 +1,9 @@
-"""Jersey (plain-knit) pattern: yarn control points and contact parameters.
+"""Knitted fabrics: yarn control points and contact parameters of a chart
+of knit and purl stitches (plain jersey the chart of knits only).
 
 A fabric of r rows (courses) × nc columns (stitches) is r yarns, one per
-course. In units where a stitch is 2π wide the centreline of course f is the
-plain-knit curve
+course. In units where a stitch is 2π wide the centreline of course f of a
+jersey is the plain-knit curve
 
     γ_f(t) = (t + a sin 2t,  h cos t + f w,  d cos 2t),   t ∈ [−π, 2π nc − π],
 
@@ -10,11 +11,29 @@ x along the courses, y along the wales (up), z through the thickness. The
 loop heads sit at t = 2πj, j = 0 … nc − 1; a yarn starts and ends at a
 sinker loop (t = −π mod 2π).
 
+Face and back. The heads and sinkers lie at +z, the legs at −z: the legs
+show as V's on the −z side, the technical face, and the heads and sinkers
+as purl bumps on the +z side, the technical back. Stitch j of course f + 1
+is a knit, as seen from the face, when its loop is pulled through its
+parent (stitch j of course f) towards the face: its legs pass in front of
+(−z of) the parent's head, its sinkers behind (+z of) the parent's legs.
+A purl is the loop pulled through from the other side: the knit's loop
+mirrored through the mid-plane z = 0, its legs behind the parent's head and
+its sinkers in front of its legs. A chart (``knit.chart``: rows bottom
+first, each read from the face left to right) sets every stitch; the depths
+of a course's control points follow its stitches and those above them,
+blended across the sinker where a knit meets a purl (``knit.stitches``),
+and the template is then opened until no yarn comes within 2r of another,
+its crossings as far apart as a jersey's (``knit.clearance``). The
+crossings, found per stitch as the closest approach of the two yarns there
+(``interlocks``), hold the rest offsets of that geometry: a purl's are the
+knit's flipped through the thickness.
+
 Each yarn is a uniform cubic B-spline with 8 segments a stitch, so
 n_f = 8 nc + 3 control points. Control point i sits at t_i = −π + (i − 1)Δ,
 Δ = 2π/8; each harmonic of γ is divided by the junction symbol
-(4 + 2 cos ωΔ)/6 so that the spline interpolates γ at every segment junction.
-Physical lengths are the unit lengths times ``radius / r``.
+(4 + 2 cos ωΔ)/6 so that the jersey's spline interpolates γ at every segment
+junction. Physical lengths are the unit lengths times ``radius / r``.
 
 Knitted in the round (``shape="tube"``) every course closes on itself: the
 flat curve is wrapped around the y axis, x onto the angle θ = (x − t₀)/nc and
@@ -23,17 +42,22 @@ z onto the radius, on a circle of nc units (a course's 2π nc around),
     γ̃_f(t) = ((nc + z) sin θ,  y,  (nc + z) cos θ),   (x, y, z) = γ_f(t),
 
 and each yarn is a closed cubic B-spline of n_f = 8 nc control points, one
-a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``).
-The front of the knit (+z) faces outwards. We chose closed courses over
+a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``;
+a pattern's depths are those of its flat course at the junctions). The
+technical back (+z) faces outwards: a tube is seen from outside inside out,
+its chart still read from the face. We chose closed courses over
 the single helical yarn of a circular knitting machine: every course is the
-same ring (contacts computed once, translated), the tube's ends are level,
-and whole yarns still spread over the ranks.
+same ring, the tube's ends are level, and whole yarns still spread over the
+ranks.
 """
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from knitfem.knit import stitches
+from knitfem.knit.chart import Chart
 from knitfem.yarn import bspline
 
 __all__ = ["LoopShape", "Jersey", "SHAPES", "min_yarn_distance"]
@@ -60,7 +84,8 @@ class LoopShape:
 
 
 class Jersey:
-    """Geometry of an r × nc jersey: control points, contacts, fixed points.
+    """Geometry of an r × nc knit, a jersey unless its chart has purls:
+    control points, contacts, fixed points.
 
     Parameters
     ----------
@@ -73,13 +98,20 @@ class Jersey:
         A flat swatch of open courses, or a tube knitted in the round.
     rest : a relaxed knit of these stitches (``run.relax.RelaxedKnit``) its
         fabrics start from, or None for the stress-free template.
+    chart : knit.chart.Chart of rows × cols, or None for a jersey
+        Knit or purl for every stitch, as seen from the face.
     """
 
     def __init__(self, rows, cols, radius=5e-4, shape=LoopShape(), knit="flat",
-                 rest=None):
+                 rest=None, chart=None):
         if knit not in SHAPES:
             raise ValueError(f"knit shape {knit!r}: use one of {', '.join(SHAPES)}")
         self.rows, self.cols = int(rows), int(cols)
+        self.chart = Chart(np.zeros((self.rows, self.cols), bool)) if chart is None \
+            else chart
+        if self.chart.shape != (self.rows, self.cols):
+            raise ValueError(f"a chart of {self.chart.rows}x{self.chart.cols} stitches "
+                             f"for a knit of {self.rows}x{self.cols}")
         self.radius, self.shape, self.knit = float(radius), shape, knit
         self.rest = rest
         self.scale = self.radius / shape.r
@@ -96,8 +128,11 @@ class Jersey:
         return (np.asarray(t) - T0) / DT
 
     def control_points(self, f):
-        """Rest control points (n_f, 3) of yarn f, interpolating γ_f (γ̃_f on a
-        tube) at the junctions."""
+        """Rest control points (n_f, 3) of yarn f: a jersey's interpolate γ_f
+        (γ̃_f on a tube) at the junctions; a pattern's are the opened template
+        of its knits and purls (``pattern_points``)."""
+        if not self.chart.jersey:
+            return self.scale * pattern_points(self.chart, self.knit, self.shape)[f]
         if self.closed:
             t = T0 + (np.arange(self.ncp) - 1) * DT
             return bspline.periodic_interpolant(self.centreline(t, f))
@@ -117,22 +152,25 @@ class Jersey:
         """Rest control points of all yarns, (r · n_f, 3), yarn after yarn."""
         return np.concatenate([self.control_points(f) for f in range(self.rows)])
 
-    def centreline(self, t, f):
+    def centreline(self, t, f, z=None):
         """The closed-form jersey curve γ_f(t) (γ̃_f on a tube) in metres,
-        (len(t), 3)."""
+        (len(t), 3), or the curve with the depths z (units of the shape)."""
         s, t = self.shape, np.asarray(t, dtype=float)
-        x, y, z = t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w, s.d * np.cos(2 * t)
+        x, y = t + s.a * np.sin(2 * t), s.h * np.cos(t) + f * s.w
+        z = s.d * np.cos(2 * t) if z is None else z
         if self.closed:
             theta = (x - T0) / self.cols
             x, z = (self.cols + z) * np.sin(theta), (self.cols + z) * np.cos(theta)
         return self.scale * np.stack([x, y, z], axis=-1)
 
     def contacts(self):
-        """Interlock contacts between courses k and k + 1.
-
-        Two a stitch: the head of course k (t = 2πj) passes the two legs of
-        course k + 1. Each contact is the closest approach of the two splines,
-        refined by Newton from t_a = 2πj ± 0.99, t_b = 2πj ± 2.16.
+        """Interlock contacts, two a stitch: stitch j of course k + 1 passes
+        the head of its parent, stitch j of course k, on either side. Each
+        contact is the closest approach of the two splines near that stitch:
+        the nearest pair of points on a grid of t_a = 2πj ± [0.3, 1.7] (the
+        parent's head) and t_b = 2πj ± [1.4, 3.0] (the stitch's leg),
+        refined by Newton (the jersey's at t_a = 2πj ± 0.99, t_b = 2πj ±
+        2.16; a purl's the knit's mirrored, at the same parameters).
 
         Returns
         -------
@@ -140,25 +178,78 @@ class Jersey:
             Course k; the contact is P_k(s_a) − P_{k+1}(s_b) = d_ab.
         s_a, s_b : (nct,) float
         """
-        if self.rows < 2:
-            return np.zeros(0, int), np.zeros(0), np.zeros(0)
-        j = np.arange(self.cols)
-        ta = (2 * np.pi * j[:, None] + np.array([-0.99, 0.99])).ravel()
-        tb = (2 * np.pi * j[:, None] + np.array([-2.16, 2.16])).ravel()
-        Pa, Pb = self.control_points(0), self.control_points(1)
-        sa, sb = closest_approach(Pa, Pb, self.parameter(ta), self.parameter(tb),
-                                  closed=self.closed)
-        k = np.repeat(np.arange(self.rows - 1), sa.size)
-        return k, np.tile(sa, self.rows - 1), np.tile(sb, self.rows - 1)
+        return interlocks([self.control_points(f) for f in range(self.rows)],
+                          self.cols, self.closed)
 
     def heads(self, f):
         """Spline parameters of the nc loop heads of yarn f (t = 2πj)."""
         return self.parameter(2 * np.pi * np.arange(self.cols))
 
 
+def interlocks(P, cols, closed):
+    """The contacts (``Jersey.contacts``) of courses with control points P
+    (a list of (n_f, 3)) of ``cols`` stitches each: (course k, s_a, s_b)."""
+    side = np.array([-1.0, 1.0])[:, None]
+    stitch = 2 * np.pi * np.arange(cols)[:, None, None]
+    ga = ((stitch + side * np.linspace(0.3, 1.7, 15) - T0) / DT).reshape(-1, 15)
+    gb = ((stitch + side * np.linspace(1.4, 3.0, 17) - T0) / DT).reshape(-1, 17)
+    n = np.arange(len(ga))
+    sa, sb = [np.zeros(0)], [np.zeros(0)]
+    for k in range(len(P) - 1):
+        A = bspline.curve_points(P[k], ga, closed=closed)
+        B = bspline.curve_points(P[k + 1], gb, closed=closed)
+        d = np.linalg.norm(A[:, :, None] - B[:, None], axis=-1).reshape(len(ga), -1)
+        ia, ib = np.divmod(np.argmin(d, axis=1), gb.shape[1])
+        a, b = closest_approach(P[k], P[k + 1], ga[n, ia], gb[n, ib], closed=closed)
+        sa.append(a)
+        sb.append(b)
+    return (np.repeat(np.arange(max(len(P) - 1, 0)), len(ga)), np.concatenate(sa),
+            np.concatenate(sb))
+
+
+@functools.lru_cache(maxsize=16)
+def pattern_points(chart, knit, shape):
+    """Control points of every course of ``chart`` knitted ``knit`` (flat or
+    tube) with loops ``shape``, in the shape's units (a list of (n_f, 3)):
+    the jersey's x and y with the depths of its knits and purls
+    (``stitches.depths``), opened until no two yarns are within 2.08 r
+    (``clearance.open_up``), the yarns of each crossing then as far apart as
+    a jersey's (``clearance.hold_crossings``). Computed once for a chart."""
+    from knitfem.knit.clearance import hold_crossings, open_up
+    from knitfem.knit.fabric import Fabric
+
+    unit = Jersey(chart.rows, chart.cols, shape.r, shape, knit)
+    closed = unit.closed
+    sym = bspline.junction_symbol(2 * DT)
+    X = []
+    for f in range(chart.rows):
+        P = unit.control_points(f) / unit.scale
+        z = stitches.depths(chart.purl, f, len(P), closed, shape.d) / sym
+        if closed:      # the flat depths' junction values, wrapped round the tube
+            t = T0 + (np.arange(len(P)) - 1) * DT
+            z = (np.roll(z, 1) + 4 * z + np.roll(z, -1)) / 6
+            P = bspline.periodic_interpolant(unit.centreline(t, f, z) / unit.scale)
+        else:
+            P[:, 2] = z
+        X.append(P)
+    fabric = Fabric(X, shape.r, closed=closed)
+    fabric.X = open_up(fabric)
+    k, sa, sb = interlocks(np.split(fabric.X, fabric.yarn_start[1:-1]), chart.cols,
+                           closed)
+    fabric.contacts = (k, sa, k + 1, sb)
+    two = Jersey(2, 1, shape.r, shape)
+    _, sa, sb = two.contacts()
+    held = np.linalg.norm(bspline.curve_points(two.control_points(0), sa[:1])
+                          - bspline.curve_points(two.control_points(1), sb[:1]))
+    opened = hold_crossings(fabric, held, 1e-12 * shape.r)
+    return [opened[fabric.yarn_start[f]:fabric.yarn_start[f + 1]]
+            for f in range(chart.rows)]
+
+
 def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
-    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised
-    (s read modulo the segments on closed curves, else kept in them)."""
+    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised,
+    steps capped at a quarter segment (s read modulo the segments on closed
+    curves, else kept in them)."""
     na, nb = bspline.segments(len(Pa), closed), bspline.segments(len(Pb), closed)
 
     def at(P, s, nu):
@@ -173,7 +264,7 @@ def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
         H[:, 0, 0] = np.sum(A1 * A1 + D * A2, -1)
         H[:, 1, 1] = np.sum(B1 * B1 - D * B2, -1)
         H[:, 0, 1] = H[:, 1, 0] = -np.sum(A1 * B1, -1)
-        step = np.linalg.solve(H, g[..., None])[..., 0]
+        step = np.clip(np.linalg.solve(H, g[..., None])[..., 0], -0.25, 0.25)
         sa, sb = sa - step[:, 0], sb - step[:, 1]
         sa, sb = (np.mod(sa, na), np.mod(sb, nb)) if closed else \
             (np.clip(sa, 0, na), np.clip(sb, 0, nb))

@@ -188,7 +188,7 @@ def knit_measures(jersey, fabric, P):
     yarn = np.repeat(np.arange(fabric.nyarn), jersey.cols)
     cols, b = fabric.point_rows(yarn, np.tile(jersey.heads(0), fabric.nyarn))
     heads = np.einsum("na,nai->ni", b, P[cols]).reshape(fabric.nyarn, jersey.cols, 3)
-    cs, ws = spacings(heads)
+    cs, ws = spacings(heads, fabric.frame[:, 2])
     kc, kw, ks = munden(ell, cs, ws)
     rec = dict(loop_length_m=ell, course_spacing_m=cs, wale_spacing_m=ws,
                k_c=kc, k_w=kw, k_s=ks)

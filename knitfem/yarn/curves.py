@@ -89,6 +89,12 @@ class Curves:
         yarn = np.repeat(np.arange(self.nyarn), np.diff(start))
         return Samples(S @ np.asarray(self.points), start, yarn, self.course[k])
 
+    def sampling(self, samples):
+        """(S, start): the sparse (M, N) B-spline weights of the samples
+        ``samples`` gives (x = S p) and their offsets (nyarn + 1,)."""
+        S, start, _ = _sampler(np.asarray(self.start, np.int64).tobytes(), samples)
+        return S, start
+
 
 @functools.lru_cache(maxsize=8)
 def _sampler(start_bytes, samples):
