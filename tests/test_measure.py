@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from knitfem.knit.measure import EDGES, curl, loop_length, munden, spacings
+from knitfem.knit.measure import EDGES, curl, loop_length, munden, spacings, turned
 from knitfem.knit.pattern import Jersey
 from knitfem.yarn import bspline
 
@@ -68,3 +68,12 @@ def test_a_ribs_spacings_are_those_in_its_plane():
     heads = np.stack([2.0 * c, 3.0 * r, np.where(c % 2, -1.0, 1.0)], axis=-1)
     assert spacings(heads)[1] == pytest.approx(np.sqrt(8.0), rel=1e-15)
     assert spacings(heads, normal=[0, 0, 1]) == (3.0, 2.0)
+
+
+def test_turned_is_the_rigid_motion_between_two_placements():
+    """A turn and a shift of a point set are recovered to round-off (measured
+    2e-16)."""
+    X = np.random.default_rng(3).normal(size=(40, 3))
+    R = np.linalg.qr(np.random.default_rng(4).normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    assert np.abs(turned(X, X @ R.T + [1.0, 2.0, -3.0]) - R).max() < 2e-15

@@ -25,7 +25,7 @@ courses (bottom and top) to the back.
 
 import numpy as np
 
-__all__ = ["EDGES", "spacings", "munden", "curl", "loop_length"]
+__all__ = ["EDGES", "spacings", "munden", "curl", "loop_length", "turned"]
 
 EDGES = ("bottom", "top", "left", "right")
 
@@ -67,6 +67,18 @@ def loop_length(lengths, stitches):
     """Yarn length a stitch ℓ [m]: the total length of the yarns ``lengths``
     over their ``stitches``."""
     return float(np.sum(lengths) / np.sum(stitches))
+
+
+def turned(X, P):
+    """The rotation R that best carries the points X (n, 3) onto P (n, 3)
+    after centring both, min_R Σ|R (X_i − X̄) − (P_i − P̄)|² (Kabsch): from
+    the SVD U Σ Vᵀ of Σ (P_i − P̄)(X_i − X̄)ᵀ, R = U diag(1, 1, det U Vᵀ) Vᵀ.
+    A template's directions carried to a deformed knit by it are rigid
+    invariants of the knit."""
+    X = np.asarray(X, dtype=float) - np.mean(X, axis=0)
+    P = np.asarray(P, dtype=float) - np.mean(P, axis=0)
+    U, _, Vt = np.linalg.svd(P.T @ X)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def curl(heads, back, radius):

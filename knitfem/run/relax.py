@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 import h5py
 import numpy as np
 
-from knitfem.knit.measure import curl, loop_length, munden, spacings
+from knitfem.knit.measure import curl, loop_length, munden, spacings, turned
 from knitfem.yarn import bspline
 
 __all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "stitch_length",
@@ -188,7 +188,8 @@ def knit_measures(jersey, fabric, P):
     yarn = np.repeat(np.arange(fabric.nyarn), jersey.cols)
     cols, b = fabric.point_rows(yarn, np.tile(jersey.heads(0), fabric.nyarn))
     heads = np.einsum("na,nai->ni", b, P[cols]).reshape(fabric.nyarn, jersey.cols, 3)
-    cs, ws = spacings(heads, fabric.frame[:, 2])
+    # in the plane of the knit as it lies now, whatever its rigid motion
+    cs, ws = spacings(heads, turned(fabric.X, P) @ fabric.frame[:, 2])
     kc, kw, ks = munden(ell, cs, ws)
     rec = dict(loop_length_m=ell, course_spacing_m=cs, wale_spacing_m=ws,
                k_c=kc, k_w=kw, k_s=ks)
