@@ -122,7 +122,8 @@ class SymplecticEuler:
         self.system, self.control = system, control or StepControl(dt)
         system.constraint_jacobian(system.start_state())
         self.saddle = SaddlePoint(system.M, system.C)
-        self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_")
+        self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_",
+                              getattr(system, "null_space", False))
         with EV_FACTOR:
             self._solve(self.ksp.setUp)
         self.rhs, self.sol = self.saddle.createVec(), self.saddle.createVec()
@@ -279,7 +280,7 @@ class NewtonStepper:
             lambda: self.limited)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
-        self.ksp = saddle_ksp(self.saddle, prefix)
+        self.ksp = saddle_ksp(self.saddle, prefix, getattr(system, "null_space", False))
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
         # one pre-check: a body's step limit (which also applies the yarn
@@ -330,7 +331,8 @@ class NewtonStepper:
             obj.destroy()
         self._layout(x)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
-        self.ksp = saddle_ksp(self.saddle, self.prefix)
+        self.ksp = saddle_ksp(self.saddle, self.prefix,
+                              getattr(system, "null_space", False))
         self.snes.setKSP(self.ksp)
 
     def _missing_entries(self, test):

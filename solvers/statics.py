@@ -94,7 +94,8 @@ class StaticSolver:
         self.snes.setConvergenceTest(self._converged(system))
         _default("static_", "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-12, atol=1e-50, max_it=500)
-        self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
+        self.snes.setKSP(saddle_ksp(self.saddle, "static_",
+                                          getattr(system, "null_space", False)))
         self.snes.setFromOptions()
         nu = self.saddle.nu
         self.filter = set_step_filter(
