@@ -581,6 +581,10 @@ class NewtonStepper:
                              self.xn.getArray(readonly=True),
                              self.xe.getArray(readonly=True))
                 good = c.judge(err, h, self.order, landed)
+            if good is None:
+                raise SimulationError(f"local error {err:.3g} times the tolerance at "
+                                      f"dt {h:.2e} s; the step fell below "
+                                      f"-knit_dt_min {c.dt_min:g} s")
             if good:
                 self._commit(x, v, h)
                 stats["dt"] = h

@@ -165,6 +165,19 @@ def test_petsc_error_in_newton_becomes_simulation_error():
             opts.delValue(k)
 
 
+def test_step_control_shrinks_to_dt_min_and_no_further():
+    """A rejected step proposes h·fac but never below dt_min; a step
+    rejected at dt_min (or a shorter one landing on t_stop) returns None (the
+    run stops); an accepted one never proposes below dt_min either."""
+    c = StepControl(1e-3, adaptive=True, dt_min=3e-4)
+    assert c.judge(1e6, 1e-3, 2, False) is False and c.dt == 3e-4   # h fac = 2e-4
+    assert c.judge(1e6, 3e-4, 2, False) is None
+    assert c.judge(1e6, 1e-4, 2, True) is None
+    assert c.judge(0.99, 3e-4, 2, False) is True and c.dt == 3e-4
+    c = StepControl(1e-3, adaptive=True, dt_min=1e-5)
+    assert c.judge(1e6, 1e-3, 2, False) is False and c.dt == pytest.approx(2e-4)
+
+
 def test_position_history_estimate_is_exact_for_a_cubic():
     """For ε = t³ the extrapolation error is Π ε⃛/3! and e = c h³ ε⃛."""
     hist = PositionHistory(2, 0.1)
