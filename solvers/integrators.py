@@ -25,6 +25,7 @@ local error estimate.
 import numpy as np
 from petsc4py import PETSc
 
+from .halting import halt_if_requested, requested
 from .progress import note
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
@@ -69,10 +70,14 @@ def step_convergence(saddle, step_tol, system, limited=lambda: False):
     multipliers'). The residual of stiff yarns carries round-off far above
     any absolute tolerance on |F|; and volume control points that carry
     almost no yarn (a near-null mode of Γᵀ M Γ) may move freely in the
-    last iterations without moving a yarn."""
+    last iterations without moving a yarn. A request to stop
+    (``halting.requested``) ends the solve at once (reported as
+    DIVERGED_FUNCTION_COUNT; the integrator then raises ``Halted``)."""
     R = PETSc.SNES.ConvergedReason
 
     def test(snes, it, norms):
+        if requested():
+            return R.DIVERGED_FUNCTION_COUNT
         fnorm = norms[2]
         if it > 0:
             ynorm = system.yarn_move(saddle.split(snes.getSolutionUpdate())[0])
@@ -509,6 +514,7 @@ class NewtonStepper:
         finally:
             stats["newton"] += self.snes.getIterationNumber()
             stats["ksp"] += self.snes.getLinearSolveIterations()
+        halt_if_requested()
 
     def _pattern_left(self):
         """After a failed Newton: if its matrix lacked tangent entries, the
