@@ -305,6 +305,7 @@ def test_a_signal_inside_newton_abandons_the_step_at_that_iteration(tmp_path):
         with pytest.raises(interrupts.Interrupted):
             sim.run(1.0)
     finally:
+        interrupts.install()                 # nothing pending for later tests
         for s, h in handlers.items():
             signal.signal(s, h)
     assert calls.count(3) == 2 and calls[-1] == 3 and calls.count(2) > 2

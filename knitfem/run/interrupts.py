@@ -41,9 +41,9 @@ def _handler(signum, frame):
 
 
 def install(say=None):
-    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only); ``say``
-    prints an interruption's one line (``announce``)."""
-    _state["say"] = say
+    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only), none
+    pending; ``say`` prints an interruption's one line (``announce``)."""
+    _state["say"], _state["pending"] = say, 0
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _handler)
 
