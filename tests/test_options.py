@@ -74,7 +74,7 @@ def test_tighter_local_error_takes_more_steps(tmp_path, option, other, loose):
     """The error norm's weight is w = atol + rtol |ε|: with the other
     tolerance negligible, one a hundred times tighter takes smaller steps
     (by about 100^(1/3) for a second-order method; |ε| ≈ 5 mm)."""
-    recs = [knitfem(tmp_path / str(v), *SMALL, "-knit_t_end", "0.02", "-" + other,
+    recs = [knitfem(tmp_path / str(v), *SMALL, "-knit_t_end", "0.01", "-" + other,
                     "1e-14", "-" + option, str(v))[1] for v in (loose, loose / 100)]
     assert recs[1][option[5:]] == loose / 100
     assert recs[1]["steps"] > 2 * recs[0]["steps"]
