@@ -337,7 +337,7 @@ class NewtonStepper:
         self._layout(x)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.ksp = saddle_ksp(self.saddle, self.prefix,
-                              getattr(system, "null_space", False))
+                              getattr(self.system, "null_space", False))
         self.snes.setKSP(self.ksp)
 
     def _missing_entries(self, test):
