@@ -56,7 +56,8 @@ def test_command_runs_as_written(tmp_path, doc, command):
     for run_it in (False, True) if quick or solver else (False,):
         p = subprocess.run(command.split() + (smaller if run_it else ["-help"])
                            + ["-skip_petscrc"], capture_output=True, text=True,
-                           env=environment(), cwd=tmp_path, timeout=300)
+                           env=environment(), cwd=tmp_path, timeout=300,
+                           stdin=subprocess.DEVNULL)
         assert p.returncode == 0, (command, p.stderr)
         assert "unknown" not in p.stderr and "warning" not in p.stderr, command
 
