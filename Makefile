@@ -5,7 +5,7 @@ PYTHON  := /usr/bin/python3
 VENV    := .venv
 VPY     := $(VENV)/bin/python
 APT     := python3-petsc4py python3-mpi4py python3-h5py python3-meshio \
-           python3-scipy python3-matplotlib python3-pytest python3-venv \
+           python3-scipy python3-matplotlib python3-pytest python3-pytest-xdist python3-venv \
            python3-setuptools python3-pip openmpi-bin cython3 python3-dev gcc \
            libopenblas-dev python3-sphinx furo python3-myst-parser
 export OMPI_ALLOW_RUN_AS_ROOT := 1
@@ -54,8 +54,11 @@ demo: setup
 
 test: setup test-serial test-parallel
 
+# The serial tests in two processes (pytest-xdist), a file each at a time, so
+# that a file's module-scoped models are built once; the mpirun files run
+# without it.
 test-serial:
-	timeout 900 $(PYTEST) tests
+	timeout 900 $(PYTEST) -n 2 --dist loadfile tests
 
 test-parallel:
 	timeout 900 $(MPIRUN) $(PYTEST) tests/test_parallel.py tests/test_aij.py tests/test_mixed.py tests/test_mixed_sampling.py tests/test_contacts.py tests/test_sliding.py \

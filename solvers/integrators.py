@@ -25,6 +25,7 @@ local error estimate.
 import numpy as np
 from petsc4py import PETSc
 
+from .halting import halt_if_requested, requested
 from .progress import note
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
@@ -69,10 +70,14 @@ def step_convergence(saddle, step_tol, system, limited=lambda: False):
     multipliers'). The residual of stiff yarns carries round-off far above
     any absolute tolerance on |F|; and volume control points that carry
     almost no yarn (a near-null mode of Γᵀ M Γ) may move freely in the
-    last iterations without moving a yarn."""
+    last iterations without moving a yarn. A request to stop
+    (``halting.requested``) ends the solve at once (reported as
+    DIVERGED_FUNCTION_COUNT; the integrator then raises ``Halted``)."""
     R = PETSc.SNES.ConvergedReason
 
     def test(snes, it, norms):
+        if requested():
+            return R.DIVERGED_FUNCTION_COUNT
         fnorm = norms[2]
         if it > 0:
             ynorm = system.yarn_move(saddle.split(snes.getSolutionUpdate())[0])
@@ -122,7 +127,8 @@ class SymplecticEuler:
         self.system, self.control = system, control or StepControl(dt)
         system.constraint_jacobian(system.start_state())
         self.saddle = SaddlePoint(system.M, system.C)
-        self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_")
+        self.ksp = saddle_ksp(self.saddle, f"{system.kind}_explicit_",
+                              getattr(system, "null_space", False))
         with EV_FACTOR:
             self._solve(self.ksp.setUp)
         self.rhs, self.sol = self.saddle.createVec(), self.saddle.createVec()
@@ -279,7 +285,7 @@ class NewtonStepper:
             lambda: self.limited)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
-        self.ksp = saddle_ksp(self.saddle, prefix)
+        self.ksp = saddle_ksp(self.saddle, prefix, getattr(system, "null_space", False))
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
         # one pre-check: a body's step limit (which also applies the yarn
@@ -330,7 +336,8 @@ class NewtonStepper:
             obj.destroy()
         self._layout(x)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
-        self.ksp = saddle_ksp(self.saddle, self.prefix)
+        self.ksp = saddle_ksp(self.saddle, self.prefix,
+                              getattr(self.system, "null_space", False))
         self.snes.setKSP(self.ksp)
 
     def _missing_entries(self, test):
@@ -507,6 +514,7 @@ class NewtonStepper:
         finally:
             stats["newton"] += self.snes.getIterationNumber()
             stats["ksp"] += self.snes.getLinearSolveIterations()
+        halt_if_requested()
 
     def _pattern_left(self):
         """After a failed Newton: if its matrix lacked tangent entries, the
@@ -579,6 +587,10 @@ class NewtonStepper:
                              self.xn.getArray(readonly=True),
                              self.xe.getArray(readonly=True))
                 good = c.judge(err, h, self.order, landed)
+            if good is None:
+                raise SimulationError(f"local error {err:.3g} times the tolerance at "
+                                      f"dt {h:.2e} s; the step fell below "
+                                      f"-knit_dt_min {c.dt_min:g} s")
             if good:
                 self._commit(x, v, h)
                 stats["dt"] = h

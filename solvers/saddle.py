@@ -328,7 +328,7 @@ def regularization_option(prefix, comm):
                         nonnegative=True)
 
 
-def saddle_ksp(saddle, prefix):
+def saddle_ksp(saddle, prefix, null_pivots=False):
     """A KSP on the saddle point, then the command line. By default a direct
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
@@ -347,6 +347,13 @@ def saddle_ksp(saddle, prefix):
     Fieldsplit preconditioners get the fields "u" (coordinates) and "l"
     (multipliers), e.g. ``-<prefix>pc_type fieldsplit
     -<prefix>pc_fieldsplit_type schur``.
+
+    ``null_pivots``: MUMPS detects null pivots (ICNTL(24) = 1) and solves on
+    the rest, for a system whose A can be singular (a mixed model whose Γ_mix
+    has a null space). Serial MUMPS pivots past them anyway; parallel MUMPS
+    factors its root front by ScaLAPACK without pivoting, and its solves were
+    then too inaccurate for Newton to converge (|F| stalled at 5e-11 against
+    2e-12 serially, in the mixed model's free spin on 2 ranks).
     """
     ksp = PETSc.KSP().create(comm=saddle.K.getComm())
     ksp.setOptionsPrefix(prefix)
@@ -375,6 +382,11 @@ def saddle_ksp(saddle, prefix):
             not options.hasName("mat_mumps_cntl_1"):
         pc.setFactorSetUpSolverType()
         pc.getFactorMatrix().setMumpsCntl(1, 0.0)   # P is quasi-definite
+    if null_pivots and pc.getType() in ("lu", "cholesky") and \
+            pc.getFactorSolverType() == "mumps" and \
+            not options.hasName("mat_mumps_icntl_24"):
+        pc.setFactorSetUpSolverType()
+        pc.getFactorMatrix().setMumpsIcntl(24, 1)
     if pc.getType() == "asm" and saddle.constrained and saddle.blocks and \
             not options.hasName("pc_asm_overlap"):
         pc.setASMLocalSubdomains(*_course_subdomains(saddle, prefix))

@@ -94,7 +94,8 @@ class StaticSolver:
         self.snes.setConvergenceTest(self._converged(system))
         _default("static_", "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-12, atol=1e-50, max_it=500)
-        self.snes.setKSP(saddle_ksp(self.saddle, "static_"))
+        self.snes.setKSP(saddle_ksp(self.saddle, "static_",
+                                          getattr(system, "null_space", False)))
         self.snes.setFromOptions()
         nu = self.saddle.nu
         self.filter = set_step_filter(
@@ -208,15 +209,40 @@ class StaticSolver:
                     f"{self.snes.getIterationNumber()} iterations, |F| = "
                     f"{self.snes.getFunctionNorm():.3e}, shift σ = {self.sigma:.3g})")
             fnorm, load = self.snes.getFunctionNorm(), self.load * self.system.Qg.norm()
-            if fnorm > 1e-6 * load:        # small updates far from any equilibrium
+            floor = _round_off_floor(self.system, self.x)
+            if fnorm > max(1e-6 * load, floor):   # small updates far from equilibrium
                 raise SimulationError(
                     f"static Newton stopped at load {self.load:.3g} with |F| = "
-                    f"{fnorm:.3e} N, above 1e-6 of the load's {load:.3e} N: there "
-                    "is no equilibrium near this state (a free knit, or one that "
-                    "can slide off a body, has none; hold it, or run the dynamics)")
+                    f"{fnorm:.3e} N, above 1e-6 of the load's {load:.3e} N and "
+                    f"round-off's {floor:.1e} N: there is no equilibrium near this "
+                    "state (a free knit, or one that can slide off a body, has none; "
+                    "hold it, or run the dynamics)")
         self._unpack(self.z)
         self.x.copy(x)
         return its
+
+
+def _round_off_floor(system, x):
+    """The round-off floor of |F| at the yarn coordinates of x (collective):
+
+        ε EA (max |ε_i| / h) √n,
+
+    h the mean control point spacing and n the yarn coordinates: the axial
+    strain ½(|ε'|² − 1) of a segment carries ε max|ε_i| / h of round-off
+    (positions of size max|ε_i| differenced over h), the axial force EA
+    times that on each coordinate, and the n of them add as noise. The
+    converged cantilever of 80 segments (EA 1e4) has |F| 1.9e-10 N against
+    this 2.8e-9 N, 1e-6 of its load 1.1e-10 N; 160 segments 4.8e-10 N."""
+    fab = system.fabric
+    X, first = fab.X, fab.yarn_start
+    legs = np.linalg.norm(np.diff(X, axis=0), axis=1)
+    legs[first[1:-1] - 1] = np.nan              # no leg from one yarn to the next
+    h = np.nanmean(legs) if np.isfinite(legs).any() else 1.0
+    p = x.getArray(readonly=True)
+    reach = system.comm.tompi4py().allreduce(float(np.abs(p).max()) if p.size else 0.0,
+                                             op=MPI.MAX)
+    return (np.finfo(float).eps * system.material.EA * reach / h
+            * np.sqrt(X.size))
 
 
 def _size(system, x):

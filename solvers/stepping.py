@@ -73,7 +73,10 @@ class StepControl:
         return float(np.sqrt(total[0] / max(total[1], 1.0)))
 
     def judge(self, err, h, order, landed):
-        """Accept or reject a step of error ``err``; set the next trial step.
+        """Accept or reject a step of error ``err``; set the next trial step,
+        never below dt_min. Returns None when a step already at dt_min (or a
+        shorter one landing on t_stop) is rejected: no step above dt_min
+        meets the tolerance.
 
         A step that landed on t_stop does not shrink the step after it.
         """
@@ -83,11 +86,13 @@ class StepControl:
         if err <= 1.0:
             self.after_reject = False
             self.dt = max(h, self.dt) * fac if landed else h * fac
-            self.dt = min(self.dt, self.dt_max)
+            self.dt = max(min(self.dt, self.dt_max), self.dt_min)
             return True
         self.rejected += 1
         self.after_reject = True
-        self.dt = h * fac
+        if h <= self.dt_min * (1.0 + 1e-12):
+            return None
+        self.dt = max(h * fac, self.dt_min)
         return False
 
     def newton_failed(self, h):

@@ -8,6 +8,16 @@ import sys
 
 import petsc4py
 
+# Under pytest-xdist the workers inherit the environment that MPI_Init of the
+# controller (which reads this file too) left: its singleton's PMIx server
+# and Open MPI's job variables. Each worker is a singleton of its own, and an
+# mpirun a test starts would take itself for part of that job and fail.
+SINGLETON = ("PMIX_", "ORTE_", "OMPI_MCA_orte_", "OMPI_MCA_ess", "OMPI_MCA_pmix",
+             "OMPI_APP_CTX_NUM_PROCS", "OMPI_ARGV", "OMPI_COMMAND")
+if "PYTEST_XDIST_WORKER" in os.environ:
+    for key in [k for k in os.environ if k.startswith(SINGLETON)]:
+        del os.environ[key]
+
 petsc4py.init(sys.argv[:1] + ["-skip_petscrc"])
 
 import pytest  # noqa: E402

@@ -280,6 +280,41 @@ def test_signal_ends_with_checkpoint_summary_and_restart_command(tmp_path, sig, 
     assert not (tmp_path / ".knitfem.lock").exists()
 
 
+def test_a_signal_inside_newton_abandons_the_step_at_that_iteration(tmp_path):
+    """SIGTERM arriving in the second Newton iteration of step 3: Newton
+    ends at that iteration (no residual after it), the step is abandoned, and
+    the checkpoint, the summary and the one line are those of step 2, as
+    fast as one iteration allows whatever the step's length (in process, so
+    no timing enters)."""
+    from helpers import hanging_simulation, jersey
+    from knitfem.run import interrupts
+
+    sim = hanging_simulation(jersey(2, 2, hold="top"), tmp_path)
+    forces, calls = sim.system.forces, []
+
+    def forces_then_a_signal(*args):
+        calls.append(sim.step_count + 1)                 # the step in progress
+        if calls.count(3) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return forces(*args)
+
+    sim.system.forces, said = forces_then_a_signal, []
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    interrupts.install(said.append)
+    try:
+        with pytest.raises(interrupts.Interrupted):
+            sim.run(1.0)
+    finally:
+        interrupts.install()                 # nothing pending for later tests
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    assert calls.count(3) == 2 and calls[-1] == 3 and calls.count(2) > 2
+    assert len(said) == 1 and "interrupted by SIGTERM at step 2, t = 0.002 s" in said[0]
+    assert checkpoint(tmp_path / "checkpoint.h5")[2:] == (2, 0.002)
+    rec = json.loads((tmp_path / "summary.json").read_text())
+    assert rec["status"] == "interrupted by SIGTERM" and rec["steps"] == 2
+
+
 def test_second_ctrl_c_stops_at_once(tmp_path):
     with started("-knit_t_end", "10", "-knit_output_every", "1", "-o",
                  str(tmp_path)) as p:
@@ -319,10 +354,13 @@ def test_sigterm_under_mpirun_all_ranks_stop_at_one_step(tmp_path):
 def test_ctrl_c_under_mpirun_says_so_and_records_it(tmp_path):
     """Ctrl-C to mpirun, with Open MPI's default second before SIGKILL, twice:
     every time the serial run's one line with the restart command, and the
-    summary marked interrupted (mpirun's exit status is its own)."""
+    summary marked interrupted (mpirun's exit status is its own). The ranks
+    hear the signal at the next Newton iteration, whatever the step's length
+    (test_a_signal_inside_newton_abandons_the_step_at_that_iteration): a
+    3x3's iterations take milliseconds, so the second is kept under load."""
     for k in range(2):
         d = tmp_path / str(k)
-        with started("-knit_rows", "7", "-knit_cols", "7", "-knit_dt", "3e-3",
+        with started("-knit_rows", "3", "-knit_cols", "3", "-knit_dt", "3e-3",
                      "-knit_t_end", "10", "-knit_output_every", "1", "-o", str(d),
                      mpirun=("mpirun", "-n", "2"),
                      sigkill_s="1") as p:

@@ -251,8 +251,8 @@ def test_adaptive_run_writes_indicator(tmp_path, sampling):
 
     p = knitfem_run("-knit_scene", "pulled", "-knit_rows", "6", "-knit_cols", "9",
                     "-knit_lod", "6,5", "-knit_model", "mixed", "-knit_adapt",
-                    "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.02",
-                    "-knit_snapshots", "0.02", "-knit_sampling", sampling,
+                    "-knit_pull_force", "0,-1e-3,0", "-knit_t_end", "0.005",
+                    "-knit_snapshots", "0.005", "-knit_sampling", sampling,
                     "-o", str(tmp_path))
     assert p.returncode == 0, p.stdout + p.stderr
     assert "adapt: t 0.0000 s, step 0: refined [[1, 0]]" in p.stdout

@@ -236,6 +236,7 @@ class MixedModel(EmbeddedModel):
 
     kind = "mixed"
     dense_saddle = False
+    null_space = True       # Γ_mix may have one: solvers detect null pivots
 
     @property
     def Gamma(self):

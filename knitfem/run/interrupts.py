@@ -1,12 +1,14 @@
 """SIGINT (Ctrl-C) and SIGTERM (what batch systems send first).
 
 During set-up a signal ends the run at once (``Interrupted``, exit 128 +
-signal number: 130, 143). While a run steps, it is held: the step finishes,
-every rank learns of it at the step's check (one reduction), and the run
-writes a final checkpoint, says so in one line (``announce``, at once: the
-run's last pictures may still be drawn after it) and writes its summary before
-it stops. A second signal stops at once (the files stay whole: each is renamed
-into place).
+signal number: 130, 143). While a run steps, it is held: every rank learns
+of it at the next Newton iteration (``solvers.halting``: one reduction each),
+which abandons the step in progress (a step without Newton, the explicit
+integrator's, finishes, and it is heard at the step's check), and the run
+writes a final checkpoint of the last accepted step, says so in one line
+(``announce``, at once: the run's last pictures may still be drawn after it)
+and writes its summary before it stops. A second signal stops at once (the
+files stay whole: each is renamed into place).
 
 Under ``mpirun`` the signal reaches mpirun, which sends SIGTERM to every rank
 and SIGKILL one second later (Open MPI's ``odls_base_sigkill_timeout``): the
@@ -39,9 +41,9 @@ def _handler(signum, frame):
 
 
 def install(say=None):
-    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only); ``say``
-    prints an interruption's one line (``announce``)."""
-    _state["say"] = say
+    """Route SIGINT and SIGTERM to ``Interrupted`` (main thread only), none
+    pending; ``say`` prints an interruption's one line (``announce``)."""
+    _state["say"], _state["pending"] = say, 0
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _handler)
 

@@ -13,8 +13,8 @@ exception or None, and exits; it also exits, after the jobs it has, when
 the run has gone. It is fork+exec (``subprocess``), safe after MPI_Init,
 and imports neither MPI nor PETSc. It ignores SIGINT and SIGTERM, which the
 terminal's process group (or a batch system) sends it with the run: the run
-finishes its step, and its close waits for the pictures, or kills the
-worker when it stops at once.
+stops at its next Newton iteration or step, and its close waits for the
+pictures, or kills the worker when it stops at once.
 """
 
 import os

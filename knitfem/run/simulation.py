@@ -30,6 +30,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from solvers import halting
 from solvers import progress as step_notes
 from solvers.integrators import SimulationError
 from solvers.petsc_errors import petsc_failure
@@ -459,6 +460,13 @@ class Simulation:
                                   f"-knit_drift_tol {self.drift_tol:g}")
         return int(signum)
 
+    def signal_anywhere(self):
+        """The stop signal any rank received (0: none; collective): asked at
+        every Newton iteration of a step (``solvers.halting``)."""
+        if self.comm.size == 1:
+            return interrupts.pending()
+        return self.comm.tompi4py().allreduce(interrupts.pending(), op=MPI.MAX)
+
     def after_step(self, signum):
         """Checkpoint when due; on a stop signal a final checkpoint, its line
         with the restart command (``interrupts.announce``), the summary marked
@@ -528,9 +536,13 @@ class Simulation:
                 stage.push()
                 self.step_start = time.perf_counter()
                 heard = step_notes.listen(self.heard)
+                asked = halting.ask_with(self.signal_anywhere)
                 try:
                     st = self.integrator.step(self.t, self.x, self.v, stop)
+                except halting.Halted as halted:    # (x, v) still the last step's
+                    self.after_step(halted.signum)
                 finally:
+                    halting.ask_with(asked)
                     step_notes.listen(heard)
                     stage.pop()
                 self.step_count += 1
