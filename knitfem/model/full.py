@@ -381,15 +381,18 @@ class FullModel:
         """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern; entries the
         pattern lacks are dropped and counted (``yarn_contact.missed``)."""
         lay = self.layout
-        H = self.yarn_contact.hessian(self.all_points(x))[3 * lay.cp_start:3 * lay.cp_end]
-        if not H.nnz:
+        rows, cols, vals = self.yarn_contact.hessian_entries(self.all_points(x))
+        mine = (rows >= 3 * lay.cp_start) & (rows < 3 * lay.cp_end)
+        if not mine.any():
             return
-        keys = csr_rows(H.indptr).astype(np.int64) * (3 * lay.ncp) + H.indices
+        keys = (rows[mine] - 3 * lay.cp_start) * (3 * lay.ncp) + cols[mine]
+        vals = vals[mine]
         pos = np.minimum(np.searchsorted(self.tangent_keys, keys),
                          len(self.tangent_keys) - 1)
         hit = self.tangent_keys[pos] == keys
-        values[self.tangent_place[pos[hit]]] += H.data[hit]
-        self.yarn_contact.missed += int(np.count_nonzero(H.data[~hit]))
+        values += np.bincount(self.tangent_place[pos[hit]], vals[hit],
+                              minlength=len(values))
+        self.yarn_contact.missed += int(np.count_nonzero(vals[~hit]))
 
     def stiffness_values(self, x, xref=None):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern
