@@ -206,7 +206,7 @@ def test_tangent_pattern_follows_the_pairs():
 
 
 def test_option_turns_it_off():
-    """-knit_yarn_contact on|off (off by default in knitfem run)."""
+    """-knit_yarn_contact on|off (on by default)."""
     from knitfem.cli.commands import model_options
     from knitfem.cli.options import KnitOptions
 
@@ -218,4 +218,4 @@ def test_option_turns_it_off():
         assert model_options(KnitOptions()).yarn_contact is True
     finally:
         opts.delValue("-knit_yarn_contact")
-    assert model_options(KnitOptions()).yarn_contact is False          # off by default
+    assert model_options(KnitOptions()).yarn_contact is True           # on by default

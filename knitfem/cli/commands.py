@@ -192,7 +192,7 @@ def relax(comm):
         raise KnitError(f"-knit_template_scale {','.join(map(str, scale))}: "
                         "expected three positive factors")
     material = material_from_options(opts, gravity=0.0, damping=RELAX_DAMPING)
-    yarn_contact = yarn_contact_option(opts, "on")
+    yarn_contact = yarn_contact_option(opts)
     t_max = opts.getReal("t_end", 2.0, "longest relaxation [s] (it stops when the "
                          "knit has come to rest)", positive=True)
     rest = opts.getReal("rest_speed", 1e-5, "the knit is at rest when its RMS speed "
@@ -282,13 +282,11 @@ def material_from_options(opts, scene=None, gravity=9.81, damping=None):
                              nonnegative=True))
 
 
-def yarn_contact_option(opts, default="off"):
-    """-knit_yarn_contact: True for on. Off by default in ``run`` (it costs
-    2–6 times a full-model step today), on in ``relax``."""
-    return opts.getChoice("yarn_contact", default, ("on", "off"),
+def yarn_contact_option(opts):
+    """-knit_yarn_contact: True for on (the default)."""
+    return opts.getChoice("yarn_contact", "on", ("on", "off"),
                           "barrier keeping the yarns apart in the full "
-                          "model (clearance band 0.072 r above 2r; relax: on, "
-                          "run: off)") == "on"
+                          "model (clearance band 0.072 r above 2r)") == "on"
 
 
 class ModelChoice(NamedTuple):

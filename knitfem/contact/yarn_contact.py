@@ -33,16 +33,20 @@ barrier there would fight the constraint. d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
 
-Broad phase: a Verlet list of the edge pairs within the band and a margin
-(a k-d tree of the edges' midpoints, segment distances vectorised; the
-toolkit's own broad phase found 57 000 box candidates on the 7×7 jersey and
-took 7–18 ms a call), found again when a sample has moved by half the
-margin; the toolkit's narrow phase on it. Step filter:
-``step_fraction``, a conservative bound per pair of edges on the straight
-path of the samples between two states (the toolkit's Tight Inclusion CCD
-with a minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359
-samples), so a Newton update scaled by it never brings two
-yarn surfaces into contact.
+Broad phase: a Verlet list of the edge pairs within the band, a margin
+and a skin (a k-d tree of the edges' midpoints, segment distances
+vectorised; the toolkit's own broad phase found 57 000 box candidates on
+the 7×7 jersey and took 7–18 ms a call), found again when a sample has
+moved by half the skin. A pair's distance changes by at most the moves of
+its two edges since the list was made, so only the pairs that this bound
+lets near enough are measured again, and only the pairs in the band are
+handed to the toolkit (none most of the time: E_y and its derivatives are
+then 0 without a call). Step filter: ``step_fraction``, a conservative
+bound per pair of edges on the straight path of the samples between two
+states, advanced along the path (the toolkit's Tight Inclusion CCD with a
+minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359 samples),
+so a Newton update scaled by it never brings two yarn surfaces into
+contact.
 
 The tangent couples control points of different yarns. ``pairs`` lists
 the segment pairs (8 control points) of the edges that may touch and are
@@ -90,15 +94,16 @@ class YarnContact:
 
     ``EI`` sets the stiffness κ; ``samples`` a segment; ``band`` d̂ / r at
     most; ``self_reach`` and ``window`` (spline parameter) the excluded
-    pairs; ``margin`` × r widens the tangent's pattern beyond the band.
+    pairs; ``margin`` × r widens the tangent's pattern beyond the band,
+    ``skin`` × r the Verlet list beyond the pattern's reach.
     """
 
     def __init__(self, fabric, EI, samples=6, band=0.08, self_reach=8.0,
                  window=0.5, margin=0.1, skin=0.4):
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
-        self.margin = float(__import__("os").environ.get("YC_MARGIN", margin)) * r  # TEMP
-        self.skin = float(__import__("os").environ.get("YC_SKIN", skin)) * r  # TEMP
+        self.margin = margin * r
+        self.skin = skin * r
         rows, cols, vals, edges, segment, yarn, param = ([] for _ in range(7))
         nv = nseg_total = 0
         for f in range(fabric.nyarn):           # set-up only: a few arrays a yarn
@@ -261,29 +266,35 @@ class YarnContact:
     def hessian(self, P, project=True):
         """∂²E_y/∂ε² (scipy CSR, 3 ncp_total square), each pair's block
         projected to positive semi-definite unless ``project`` is False."""
-        rows, cols, vals = self.hessian_entries(P, project)
+        ci, cj, B = self.hessian_blocks(P, project)
         n = self.D.shape[1]
-        return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+        k = np.arange(3)
+        rows = np.broadcast_to(3 * ci[:, None, None] + k[:, None], B.shape)
+        cols = np.broadcast_to(3 * cj[:, None, None] + k, B.shape)
+        return sp.csr_matrix((B.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n))
 
-    def hessian_entries(self, P, project=True):
-        """∂²E_y/∂ε² = Dᵀ ∇²E_y D as entries (rows, cols, values) in ε's
-        interleaved coordinates, repeated entries to be summed: each of the
-        toolkit's entries (3i + a, 3j + b) of samples i, j goes to the 4 × 4
-        control points of S's rows i and j."""
+    def hessian_blocks(self, P, project=True):
+        """∂²E_y/∂ε² = Dᵀ ∇²E_y D as 3 × 3 blocks (ci, cj, B (n, 3, 3)) of
+        control points ci, cj, repeated blocks to be summed: each 3 × 3
+        block of samples i, j of the toolkit's Hessian goes, weighted, to
+        the 4 × 4 control points of S's rows i and j."""
         V = _fortran(self.samples(P))
         col = self._build(V)
         if col is None:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3))
         how = ipctk.PSDProjectionMethod.CLAMP if project else \
             ipctk.PSDProjectionMethod.NONE
         H = self.potential.hessian(col, self.mesh, V, how).tocoo()
         (i, a), (j, b) = np.divmod(H.row, 3), np.divmod(H.col, 3)
-        rows = 3 * self.S_cols[i][:, :, None] + a[:, None, None]
-        cols = 3 * self.S_cols[j][:, None, :] + b[:, None, None]
-        vals = H.data[:, None, None] * self.S_vals[i][:, :, None] * \
-            self.S_vals[j][:, None, :]
-        return (np.broadcast_to(rows, vals.shape).ravel(),
-                np.broadcast_to(cols, vals.shape).ravel(), vals.ravel())
+        nv = len(V)
+        blocks, at = np.unique(i.astype(np.int64) * nv + j, return_inverse=True)
+        Hs = np.zeros((len(blocks), 3, 3))
+        Hs[at, a, b] = H.data
+        bi, bj = np.divmod(blocks, nv)
+        w = self.S_vals[bi][:, :, None] * self.S_vals[bj][:, None, :]
+        ci = np.broadcast_to(self.S_cols[bi][:, :, None], w.shape).ravel()
+        cj = np.broadcast_to(self.S_cols[bj][:, None, :], w.shape).ravel()
+        return ci, cj, (w[..., None, None] * Hs[:, None, None]).reshape(-1, 3, 3)
 
     def min_distance(self, P, reach=None):
         """Smallest distance of two edges that may touch, among those closer
