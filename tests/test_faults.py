@@ -308,8 +308,11 @@ def test_sigterm_under_mpirun_all_ranks_stop_at_one_step(tmp_path):
     # reading their output: few progress lines (a 2x2 takes ~1 600 steps a
     # second, so one line every 200), or the ranks block on a full pipe until
     # SIGKILL
+    # (without yarn contact, which the signals do not concern and which slows
+    # every step)
     with started("-knit_integrator", "symplectic", "-knit_dt", "1e-6", "-knit_EA",
-                 "1", "-knit_t_end", "1", "-knit_output_every", "200", "-o",
+                 "1", "-knit_t_end", "1", "-knit_output_every", "200",
+                 "-knit_yarn_contact", "off", "-o",
                  str(tmp_path), mpirun=("mpirun", "-n", "2")) as p:
         wait_for(tmp_path / "yarns" / "00000400.h5")
         finish(p, signal.SIGTERM)
@@ -327,7 +330,8 @@ def test_ctrl_c_under_mpirun_says_so_and_records_it(tmp_path):
     for k in range(2):
         d = tmp_path / str(k)
         with started("-knit_rows", "7", "-knit_cols", "7", "-knit_dt", "3e-3",
-                     "-knit_t_end", "10", "-knit_output_every", "1", "-o", str(d),
+                     "-knit_t_end", "10", "-knit_output_every", "1",
+                     "-knit_yarn_contact", "off", "-o", str(d),   # quick steps
                      mpirun=("mpirun", "-n", "2"),
                      sigkill_s="1") as p:
             wait_for(d / "yarns" / "00000003.h5")
@@ -361,7 +365,8 @@ def test_disk_full(tmp_path, size, fabric):
     fill 700 kB mid-write): one line, exit 3, no h5py destructor noise."""
     with small_tmpfs(tmp_path / "small", size) as d:
         p = knitfem("-knit_t_end", "10", "-knit_output_every", "1", *fabric,
-                    "-knit_checkpoint_every", "5", "-o", str(d))
+                    "-knit_checkpoint_every", "5", "-knit_yarn_contact", "off",
+                    "-o", str(d))
         line = one_line(p, 3)
         assert "No space left on device" in line
         times, _ = series(d)
