@@ -437,9 +437,8 @@ class YarnContact:
         return np.concatenate([conn[a], conn[b]], axis=1)
 
     def fits(self, P):
-        """Whether ``pairs`` are those that ``relayout`` would take at P: the
-        pattern is a function of the state alone, so a run continued from a
-        checkpoint lays out the same patterns as the run it continues."""
+        """Whether ``pairs`` are those that ``relayout`` would take at P (the
+        pattern is a function of the state alone, not of the run's past)."""
         return np.array_equal(self.segment_pairs(P, self.margin), self.pairs)
 
     def relayout(self, P):
