@@ -50,10 +50,10 @@ contact.
 
 The tangent couples control points of different yarns. ``pairs`` lists
 the segment pairs (8 control points) of the edges that may touch and are
-within the band plus a margin of each other, taken again at the start of a
-step when they changed (``fits``); entries outside it met inside a step are
-dropped from the tangent (counted in ``missed``) until the model rebuilds
-its pattern.
+within the band plus a margin of each other: a pattern that stays valid
+while the pairs within the band and half the margin are among them
+(``fits``); entries outside it are dropped from the tangent (counted in
+``missed``) until the model rebuilds its pattern.
 
 Every rank evaluates the whole set on all control points (gathered) and
 keeps its own rows, so results do not depend on the number of ranks.
@@ -437,9 +437,9 @@ class YarnContact:
         return np.concatenate([conn[a], conn[b]], axis=1)
 
     def fits(self, P):
-        """Whether ``pairs`` are those that ``relayout`` would take at P (the
-        pattern is a function of the state alone, not of the run's past)."""
-        return np.array_equal(self.segment_pairs(P, self.margin), self.pairs)
+        """Whether the segment pairs within the band and half the margin at P
+        are all in ``pairs`` (the tangent's pattern still holds them)."""
+        return bool(np.isin(self.segment_pairs(P, 0.5 * self.margin), self.pairs).all())
 
     def relayout(self, P):
         """``pairs`` taken again around P, with the whole margin."""

@@ -209,7 +209,7 @@ class FullModel:
         and reference points are taken there (lagged, ``colliders``); sliding
         crossings start the search for their point from there, and must lie
         inside their windows; the tangent's pattern is laid out again around
-        x when the yarn pairs near contact changed (``fits``). Returns whether
+        x when the yarn pairs near contact no longer fit it. Returns whether
         it was (the Newton matrix must then be made again). Collective."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x), t)
