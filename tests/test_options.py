@@ -150,7 +150,7 @@ def test_rho_inf_sets_the_numerical_dissipation(tmp_path):
     for rho in ("1", "0"):
         _, rec = knitfem(tmp_path / rho, *SMALL, "-knit_integrator", "alpha",
                          "-knit_dt", "1e-3", "-knit_t_end", "0.02", "-knit_damping",
-                         "0", "-knit_rho_inf", rho)
+                         "0", "-knit_rho_inf", rho, "-knit_yarn_contact", "off")
         drift[rho] = abs(rec["energy_drift_relative"])
     assert drift["1"] < 0.3 * drift["0"]      # measured 0.13
 
@@ -247,7 +247,7 @@ def test_friction_holds_a_yarn_on_a_slope(tmp_path):
         p, rec = knitfem(tmp_path / mu, *SMALL, "-knit_integrator", "implicit",
                          "-knit_dt", "1e-3", "-knit_scene", "freefall", "-knit_t_end",
                          "0.1", "-knit_collider", "plane:0.002,-0.0065,0,0.342,0.940,0",
-                         "-knit_friction", mu)
+                         "-knit_friction", mu, "-knit_yarn_contact", "off")
         assert p.returncode == 0, p.stdout + p.stderr
         dx.append(rec["centroid"][0] - 0.002094)
     assert dx[0] > 1e-2 and abs(dx[1]) < 0.3 * dx[0]      # measured 1.4e-2, 0.16

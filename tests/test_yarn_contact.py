@@ -42,9 +42,10 @@ def pushed(fab, depth):
     return P.reshape(-1, 3)
 
 
-def band_state(yc, fab):
-    """A state whose closest pair sits in the middle of the band."""
-    lo, hi = 0.0, 1.0
+def band_state(yc, fab, deepest=1.0):
+    """A state whose closest pair sits in the middle of the band (pushed by
+    at most ``deepest``)."""
+    lo, hi = 0.0, deepest
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         d = yc.min_distance(pushed(fab, mid))
@@ -194,7 +195,7 @@ def test_tangent_pattern_follows_the_pairs():
     x = full.rest_state()
     full.stiffness(x)
     assert len(full.yarn_contact.pairs) == 0
-    P = pushed(fab, 1.5)
+    P = band_state(YarnContact(fab, Material().EI), fab, 3.0)
     lo, hi = x.getOwnershipRange()
     x.getArray()[:] = P.ravel()[lo:hi]
     assert full.begin_step(x) and full.pattern_rebuilds == 1
@@ -205,7 +206,7 @@ def test_tangent_pattern_follows_the_pairs():
 
 
 def test_option_turns_it_off():
-    """-knit_yarn_contact on|off (off by default in knitfem run)."""
+    """-knit_yarn_contact on|off (on by default)."""
     from knitfem.cli.commands import model_options
     from knitfem.cli.options import KnitOptions
 
@@ -217,4 +218,4 @@ def test_option_turns_it_off():
         assert model_options(KnitOptions()).yarn_contact is True
     finally:
         opts.delValue("-knit_yarn_contact")
-    assert model_options(KnitOptions()).yarn_contact is False          # off by default
+    assert model_options(KnitOptions()).yarn_contact is True           # on by default

@@ -185,7 +185,7 @@ def relax(comm):
         raise KnitError(f"-knit_template_scale {','.join(map(str, scale))}: "
                         "expected three positive factors")
     material = material_from_options(opts, gravity=0.0, damping=0.0)
-    yarn_contact = yarn_contact_option(opts, "on")
+    yarn_contact = yarn_contact_option(opts)
     steps = opts.getInt("load_steps", 4, "load steps that take the rest lengths and "
                         "crossings from the start's own to the natural knit's", 1)
     accel = opts.getReal("rest_accel", 1e-4, "the knit is at rest when no "
@@ -263,13 +263,11 @@ def material_from_options(opts, scene=None, gravity=9.81, damping=None):
                              nonnegative=True))
 
 
-def yarn_contact_option(opts, default="off"):
-    """-knit_yarn_contact: True for on. Off by default in ``run`` (it costs
-    2–6 times a full-model step today), on in ``relax``."""
-    return opts.getChoice("yarn_contact", default, ("on", "off"),
+def yarn_contact_option(opts):
+    """-knit_yarn_contact: True for on (the default)."""
+    return opts.getChoice("yarn_contact", "on", ("on", "off"),
                           "barrier keeping the yarns apart in the full "
-                          "model (clearance band 0.072 r above 2r; relax: on, "
-                          "run: off)") == "on"
+                          "model (clearance band 0.072 r above 2r)") == "on"
 
 
 class ModelChoice(NamedTuple):

@@ -33,22 +33,27 @@ barrier there would fight the constraint. d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
 
-Broad phase: a Verlet list of the edge pairs within the band and a margin
-(a k-d tree of the edges' midpoints, segment distances vectorised; the
-toolkit's own broad phase found 57 000 box candidates on the 7×7 jersey and
-took 7–18 ms a call), found again when a sample has moved by half the
-margin; the toolkit's narrow phase on it. Step filter:
-``step_fraction``, a conservative bound per pair of edges on the straight
-path of the samples between two states (the toolkit's Tight Inclusion CCD
-with a minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359
-samples), so a Newton update scaled by it never brings two
-yarn surfaces into contact.
+Broad phase: a Verlet list of the edge pairs within the band, a margin
+and a skin (a k-d tree of the edges' midpoints, segment distances
+vectorised; the toolkit's own broad phase found 57 000 box candidates on
+the 7×7 jersey and took 7–18 ms a call), found again when a sample has
+moved by half the skin. A pair's distance changes by at most the moves of
+its two edges since the list was made, so only the pairs that this bound
+lets near enough are measured again, and only the pairs in the band are
+handed to the toolkit (none most of the time: E_y and its derivatives are
+then 0 without a call). Step filter: ``step_fraction``, a conservative
+bound per pair of edges on the straight path of the samples between two
+states, advanced along the path (the toolkit's Tight Inclusion CCD with a
+minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359 samples),
+so a Newton update scaled by it never brings two yarn surfaces into
+contact.
 
 The tangent couples control points of different yarns. ``pairs`` lists
 the segment pairs (8 control points) of the edges that may touch and are
-within the band plus a margin of each other: a pattern that stays valid while the active
-pairs are among them (``fits``); entries outside it are dropped from the
-tangent (counted in ``missed``) until the model rebuilds its pattern.
+within the band plus a margin of each other: a pattern that stays valid
+while the pairs within the band and half the margin are among them
+(``fits``); entries outside it are dropped from the tangent (counted in
+``missed``) until the model rebuilds its pattern.
 
 Every rank evaluates the whole set on all control points (gathered) and
 keeps its own rows, so results do not depend on the number of ranks.
@@ -90,14 +95,16 @@ class YarnContact:
 
     ``EI`` sets the stiffness κ; ``samples`` a segment; ``band`` d̂ / r at
     most; ``self_reach`` and ``window`` (spline parameter) the excluded
-    pairs; ``margin`` × r widens the tangent's pattern beyond the band.
+    pairs; ``margin`` × r widens the tangent's pattern beyond the band,
+    ``skin`` × r the Verlet list beyond the pattern's reach.
     """
 
     def __init__(self, fabric, EI, samples=6, band=0.08, self_reach=8.0,
-                 window=0.5, margin=0.3):
+                 window=0.5, margin=0.1, skin=0.4):
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
         self.margin = margin * r
+        self.skin = skin * r
         rows, cols, vals, edges, segment, yarn, param = ([] for _ in range(7))
         nv = nseg_total = 0
         for f in range(fabric.nyarn):           # set-up only: a few arrays a yarn
@@ -122,6 +129,8 @@ class YarnContact:
         self.S = sp.csr_matrix((cat(vals, 0), (cat(rows, 0), cat(cols, 0))),
                                shape=(nv, fabric.npoints))
         self.D = sp.kron(self.S, sp.identity(3), format="csr")
+        self.S_cols = cat(cols, 0).reshape(-1, 4)    # S's four entries a sample
+        self.S_vals = cat(vals, 0).reshape(-1, 4)
         self.edges = cat(edges, (0, 2))
         self.edge_segment = cat(segment, 0)        # the segment of every edge
         self.nseg_total = nseg_total
@@ -136,8 +145,8 @@ class YarnContact:
         half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
         self.run = 2 * half
         self.mesh.can_collide = self._filter(fabric, window)
-        self.collisions, self.built = ipctk.NormalCollisions(), None
-        self.candidates, self.candidates_at = ipctk.Candidates(), None
+        self.collisions, self.built, self.active = ipctk.NormalCollisions(), None, None
+        self.candidates_at, self.moved_at, self.candidate_builds = None, None, 0
         clearance = self._clearance(V, band * r)
         self.dhat = min(band * r, 0.9 * clearance)
         self.kappa = EI / r**2 / (4.77 * self.dmin**2 * self.dhat)
@@ -188,48 +197,107 @@ class YarnContact:
         """Sample points x = S ε (nsamples, 3) of all control points P."""
         return self.S @ np.asarray(P).reshape(-1, 3)
 
+    def _near(self, V, within):
+        """The candidate edge pairs (e, f) (``_candidates``) closer than
+        ``within`` at the samples V, and their distances d. Only the pairs
+        whose distance where the candidates were found, less the largest
+        moves of their two edges since, is below ``within`` are measured
+        again (a pair's distance changes by at most those moves)."""
+        e, f, d0 = self._candidates(V)
+        if self.moved_at is None or not np.array_equal(self.moved_at, V):
+            dv = np.sqrt(np.sum((V - self.candidates_at) ** 2, axis=1))
+            self.edge_moved = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
+            self.moved_at = V.copy()
+        maybe = d0 - self.edge_moved[e] - self.edge_moved[f] < within
+        e, f = e[maybe], f[maybe]
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        near = d < within
+        return e[near], f[near], d[near]
+
     def _build(self, V):
-        """The pairs within the band at the samples V (kept for the next call
-        at the same V: forces and tangent are taken at the same state),
-        among the candidates (``_candidates``)."""
+        """The toolkit's collisions of the pairs within the band at the
+        samples V (kept for the next call at the same V: forces and tangent
+        are taken at the same state): only the candidates closer than
+        dmin + d̂ are handed to it (pairs farther apart add nothing); None
+        when there are none, so that E_y, its gradient and Hessian are
+        exactly 0."""
         if self.built is None or not np.array_equal(self.built, V):
-            self.collisions.build(self._candidates(V), self.mesh, V, self.dhat,
-                                  self.dmin)
-            self.built = V
-        return self.collisions
+            e, f, _ = self._near(V, (self.dmin + self.dhat) * (1.0 + 1e-9))
+            order = np.argsort(e * len(self.edges) + f)  # not the list's order:
+            e, f = e[order], f[order]                    # the same sums on restart
+            self.active = None
+            if len(e):
+                cand = ipctk.Candidates()
+                cand.ee_candidates = [ipctk.EdgeEdgeCandidate(a, b) for a, b
+                                      in zip(e.tolist(), f.tolist())]
+                self.collisions.build(cand, self.mesh, V, self.dhat, self.dmin)
+                self.active = None if self.collisions.empty() else self.collisions
+            self.built = V.copy()
+        return self.active
 
     def _candidates(self, V):
-        """The edge pairs within dmin + d̂ + margin + 0.4 r of the samples
-        where they were last found, found again at V when a sample has moved
-        more than 0.2 r since: every pair within the band and half the
-        margin at V is among them (a Verlet list; two edges close in by at
-        most twice the largest move)."""
-        V0, r = self.candidates_at, self.radius
-        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.2 * r) ** 2:
-            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin + 0.4 * r)
-            self.candidates.ee_candidates = [
-                ipctk.EdgeEdgeCandidate(a, b) for a, b in zip(e.tolist(), f.tolist())]
-            self.candidates_at, self.candidate_edges = V.copy(), (e, f)
-        return self.candidates
+        """The edge pairs (e, f) within dmin + d̂ + margin + skin of the
+        samples where they were last found, and their distances there; found
+        again at V when a sample has moved more than skin / 2 since: every pair
+        within the band and the margin at V is among them (a Verlet list;
+        two edges close in by at most twice the largest move)."""
+        V0 = self.candidates_at
+        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
+            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin + self.skin)
+            e0, e1 = self.edges[:, 0], self.edges[:, 1]
+            d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+            self.candidate_edges, self.candidates_at = (e, f, d), V.copy()
+            self.moved_at = None
+            self.candidate_builds += 1
+        return self.candidate_edges
 
     def energy(self, P):
         """E_y at all control points P (ncp_total, 3)."""
         V = _fortran(self.samples(P))
-        return float(self.potential(self._build(V), self.mesh, V))
+        col = self._build(V)
+        return 0.0 if col is None else float(self.potential(col, self.mesh, V))
 
     def gradient(self, P):
         """∂E_y/∂ε (3 ncp_total,), interleaved."""
         V = _fortran(self.samples(P))
-        return self.D.T @ self.potential.gradient(self._build(V), self.mesh, V)
+        col = self._build(V)
+        if col is None:
+            return np.zeros(self.D.shape[1])
+        return self.D.T @ self.potential.gradient(col, self.mesh, V)
 
     def hessian(self, P, project=True):
         """∂²E_y/∂ε² (scipy CSR, 3 ncp_total square), each pair's block
         projected to positive semi-definite unless ``project`` is False."""
+        ci, cj, B = self.hessian_blocks(P, project)
+        n = self.D.shape[1]
+        k = np.arange(3)
+        rows = np.broadcast_to(3 * ci[:, None, None] + k[:, None], B.shape)
+        cols = np.broadcast_to(3 * cj[:, None, None] + k, B.shape)
+        return sp.csr_matrix((B.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n))
+
+    def hessian_blocks(self, P, project=True):
+        """∂²E_y/∂ε² = Dᵀ ∇²E_y D as 3 × 3 blocks (ci, cj, B (n, 3, 3)) of
+        control points ci, cj, repeated blocks to be summed: each 3 × 3
+        block of samples i, j of the toolkit's Hessian goes, weighted, to
+        the 4 × 4 control points of S's rows i and j."""
         V = _fortran(self.samples(P))
+        col = self._build(V)
+        if col is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3))
         how = ipctk.PSDProjectionMethod.CLAMP if project else \
             ipctk.PSDProjectionMethod.NONE
-        H = self.potential.hessian(self._build(V), self.mesh, V, how)
-        return (self.D.T @ H.tocsr() @ self.D).tocsr()
+        H = self.potential.hessian(col, self.mesh, V, how).tocoo()
+        (i, a), (j, b) = np.divmod(H.row, 3), np.divmod(H.col, 3)
+        nv = len(V)
+        blocks, at = np.unique(i.astype(np.int64) * nv + j, return_inverse=True)
+        Hs = np.zeros((len(blocks), 3, 3))
+        Hs[at, a, b] = H.data
+        bi, bj = np.divmod(blocks, nv)
+        w = self.S_vals[bi][:, :, None] * self.S_vals[bj][:, None, :]
+        ci = np.broadcast_to(self.S_cols[bi][:, :, None], w.shape).ravel()
+        cj = np.broadcast_to(self.S_cols[bj][:, None, :], w.shape).ravel()
+        return ci, cj, (w[..., None, None] * Hs[:, None, None]).reshape(-1, 3, 3)
 
     def min_distance(self, P, reach=None):
         """Smallest distance of two edges that may touch, among those closer
@@ -240,50 +308,80 @@ class YarnContact:
         return np.sqrt(col.compute_minimum_distance(self.mesh, V)) \
             if not col.empty() else np.inf
 
-    def step_fraction(self, P0, P1, keep=0.1):
-        """The largest t ≤ 1 for which the straight path from P0 towards P1
-        keeps every two yarn surfaces apart, by a conservative bound per
-        pair of edges: the points of edges e and f move relative to each
-        other by convex combinations of their samples' relative moves, so
-        by at most δ_ef = max_(i∈e, j∈f) |Δx_i − Δx_j|, and edges at
-        distance d come no closer than d − δ_ef t; t = (1 − keep)(d − dmin)
-        / δ_ef over the pairs that may touch keeps ``keep`` of each one's
-        clearance.
+    def step_fraction(self, P0, P1, keep=0.1, rounds=6):
+        """The largest t ≤ 1 (found conservatively) for which the straight
+        path from P0 towards P1 keeps every two yarn surfaces apart by
+        ``keep`` of their clearance at P0 at least.
 
-        Every pair's clearance is at least c = min(d̂, that of the pairs in
-        the band at P0), and δ_ef ≤ δ_e + δ_f with δ_e the largest move of
-        e's samples less the mean move (a rigid translation is never cut):
-        only pairs with an edge moving by more than (1 − keep) c / 2 are
-        looked at."""
+        The points of edges e and f move relative to each other by convex
+        combinations of their samples' relative moves, so by at most
+        δ_ef = max_(i∈e, j∈f) |Δx_i − Δx_j| ≤ δ_e + δ_f along the whole path
+        (δ_e the largest move of e's samples less the mean move: a rigid
+        translation is never cut): a pair at distance d(t) on the path stays
+        above g = dmin + keep (d(0) − dmin) until at least
+        t + (d(t) − g) / δ_ef. Starting from 0, each pair's t is advanced so,
+        ``rounds`` times (additive conservative advancement, Li et al.,
+        SIGGRAPH 2021: a pair sliding past another reaches 1 in a round or
+        two, one closing in stops short of where it would reach g).
+
+        Only the pairs with δ_e + δ_f > (1 − keep)(d − dmin) can stop
+        short of 1: the candidates (``_near``), which hold every pair closer
+        than dmin + d̂ + margin, and the pairs of an edge moving by more than
+        (1 − keep)(d̂ + margin) / 2 (a k-d tree around those alone)."""
         V0 = _fortran(self.samples(P0))
         dV = self.samples(P1) - V0
         dV -= dV.mean(axis=0)
         dv = np.sqrt(np.sum(dV * dV, axis=1))
-        e0, e1 = self.edges[:, 0], self.edges[:, 1]
-        de = np.maximum(dv[e0], dv[e1])
-        col = self._build(V0)
-        known = self.dhat if col.empty() else min(
-            self.dhat, np.sqrt(col.compute_minimum_distance(self.mesh, V0)) - self.dmin)
-        movers = np.flatnonzero(de > 0.5 * (1.0 - keep) * known)
-        if not len(movers):
+        de = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
+        reach = 2.0 * de.max(initial=0.0) / (1.0 - keep)
+        e, f, d = self._near(V0, self.dmin + min(reach, self.dhat + self.margin))
+        fast = np.flatnonzero(de > 0.5 * (1.0 - keep) * (self.dhat + self.margin))
+        if len(fast):                   # pairs beyond the candidates that may close
+            g, h, dg = self.edges_near(V0, fast, self.dmin + (de[fast].max() + de.max())
+                                        / (1.0 - keep))
+            may = de[g] + de[h] > (1.0 - keep) * (dg - self.dmin)
+            may[may] &= self.edges_may_touch(g[may], h[may])
+            e, f, d = np.append(e, g[may]), np.append(f, h[may]), np.append(d, dg[may])
+        may = de[e] + de[f] > (1.0 - keep) * (d - self.dmin)
+        if not may.any():
             return 1.0
-        mid, half = 0.5 * (V0[e0] + V0[e1]), 0.5 * self.edge_lengths(V0)
-        close = cKDTree(mid[movers]).sparse_distance_matrix(
-            cKDTree(mid), self.dmin + 2 * half.max() + 2 * de.max(),
-            output_type="ndarray")
-        e, f, dist = movers[close["i"]], close["j"], close["v"]
-        near = (e != f) & (dist - half[e] - half[f] < self.dmin + de[e] + de[f])
-        e, f = e[near], f[near]
-        a, b = self.edges[e], self.edges[f]
+        a, b, d = self.edges[e[may]], self.edges[f[may]], d[may]
         rel = np.max([np.linalg.norm(dV[a[:, p]] - dV[b[:, q]], axis=1)
                       for p in range(2) for q in range(2)], axis=0)
-        d = segment_distance(V0[a[:, 0]], V0[a[:, 1]], V0[b[:, 0]], V0[b[:, 1]])
-        hit = d < self.dmin + rel
-        hit[hit] &= self.edges_may_touch(e[hit], f[hit])
-        if not hit.any():
-            return 1.0
-        t = (1.0 - keep) * (d[hit] - self.dmin) / rel[hit]
+        low = self.dmin + keep * (d - self.dmin)
+        t = np.zeros(len(d))
+        for _ in range(rounds):
+            t = np.minimum(t + (d - low) / np.maximum(rel, 1e-300), 1.0)
+            go = np.flatnonzero(t < 1.0)
+            if not len(go):
+                return 1.0
+            a, b, d, rel, low, t = a[go], b[go], d[go], rel[go], low[go], t[go]
+            x = [V0[a[:, k]] + t[:, None] * dV[a[:, k]] for k in range(2)]
+            y = [V0[b[:, k]] + t[:, None] * dV[b[:, k]] for k in range(2)]
+            d = segment_distance(x[0], x[1], y[0], y[1])
         return float(np.clip(t.min(), 0.0, 1.0))
+
+    def edges_near(self, V, some, within):
+        """Pairs (e, f) of an edge e of ``some`` and any edge f not of its
+        neighbourhood along the yarn (``close_edges``' first filter) closer
+        than ``within`` at the samples V, and their distances."""
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
+        close = cKDTree(mid[some]).sparse_distance_matrix(
+            cKDTree(mid), within + 2 * half.max(), output_type="ndarray")
+        e, f = some[close["i"]], close["j"]
+        keep = self._apart(e, f) & (close["v"] - half[e] - half[f] < within)
+        e, f = e[keep], f[keep]
+        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        return e[d < within], f[d < within], d[d < within]
+
+    def _apart(self, e, f):
+        """Edge pairs on different yarns, or on one yarn at least half a run
+        of samples apart (a cheap first filter: pairs nearer along a yarn
+        never touch)."""
+        e0 = self.edges[:, 0]
+        return (self.sample_yarn[e0[e]] != self.sample_yarn[e0[f]]) | \
+            (np.abs(e0[e] - e0[f]) >= self.run // 2 - 1)
 
     def edge_lengths(self, V):
         return np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
@@ -316,8 +414,7 @@ class YarnContact:
         mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
         close = cKDTree(mid).query_pairs(within + 2 * half.max(), output_type="ndarray")
         e, f = close[:, 0], close[:, 1]
-        apart = (self.sample_yarn[e0[e]] != self.sample_yarn[e0[f]]) | \
-            (np.abs(e0[e] - e0[f]) >= self.run // 2 - 1)
+        apart = self._apart(e, f)
         e, f = e[apart], f[apart]
         d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
         hit = d < within
@@ -327,8 +424,8 @@ class YarnContact:
     def segment_pairs(self, P, reach):
         """Keys a · nseg_total + b (a < b, global segment numbers; sorted,
         unique) of the segments of the edge pairs that may touch and are
-        closer than dmin + d̂ + ``reach``."""
-        e, f = self.close_edges(self.samples(P), self.dmin + self.dhat + reach)
+        closer than dmin + d̂ + ``reach`` (at most the margin)."""
+        e, f, _ = self._near(self.samples(P), self.dmin + self.dhat + reach)
         a, b = self.edge_segment[e], self.edge_segment[f]
         lo, hi = np.minimum(a, b), np.maximum(a, b)
         return np.unique((lo * self.nseg_total + hi)[lo != hi])
@@ -342,16 +439,7 @@ class YarnContact:
     def fits(self, P):
         """Whether the segment pairs within the band and half the margin at P
         are all in ``pairs`` (the tangent's pattern still holds them)."""
-        V = self.samples(P)
-        self._candidates(V)
-        e, f = self.candidate_edges
-        e0, e1 = self.edges[:, 0], self.edges[:, 1]
-        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
-        near = d < self.dmin + self.dhat + 0.5 * self.margin
-        a, b = self.edge_segment[e[near]], self.edge_segment[f[near]]
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        need = (lo * self.nseg_total + hi)[lo != hi]
-        return bool(np.isin(need, self.pairs).all())
+        return bool(np.isin(self.segment_pairs(P, 0.5 * self.margin), self.pairs).all())
 
     def relayout(self, P):
         """``pairs`` taken again around P, with the whole margin."""
