@@ -254,7 +254,7 @@ class Barrier:
         self.bodies, self.el, self.radius = bodies, elements, radius
         self.gap = gap * radius
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
-        self.mu, self.eps_slip = friction, 0.01 * radius
+        import os; self.mu, self.eps_slip = friction, float(os.environ.get("EPSX", "0.01")) * radius
         self.lagged = None
 
     def at(self, t):

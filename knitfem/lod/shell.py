@@ -58,26 +58,34 @@ class ShellStretch:
     (``FullModel(stretch=False)``). α is given as every volume control
     point, (n, 3)."""
 
-    def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH):
+    def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH, per_patch=None):
         vol, el = embedding.volume, full.elements
         cols, vals = shell_rows(vol, embedding.params, el)
-        self.D = sparse.csr_matrix((vals.ravel(), cols.ravel(),
-                                    np.arange(0, cols.size + 1, cols.shape[1])),
-                                   shape=(len(cols), vol.size))
-        t = self.D @ vol.flat
-        self.L2 = np.einsum("qi,qi->q", t, t)
-        W = np.tile(el.weights, el.ne) * np.sqrt(self.L2)
+        t = np.einsum("qk,qki->qi", vals, vol.flat[cols])
+        L2 = np.einsum("qi,qi->q", t, t)
+        W = np.tile(el.weights, el.ne) * np.sqrt(L2)
         self.EA = full.material.EA
         lay = full.layout
         f, k = full.fabric.segments(lay.yarn_start, lay.yarn_end)
         nwin = -(-full.fabric.yarn_nseg[lay.yarn_start:lay.yarn_end] // window)
         first = np.concatenate([[0], np.cumsum(nwin)])[f - lay.yarn_start]
-        self.win = np.repeat(first + k // window, len(el.weights))
-        nwin = self.win.max() + 1 if el.ne else 0
-        self.L = np.bincount(self.win, W, minlength=nwin)            # L_w
+        win = np.repeat(first + k // window, len(el.weights))
+        self.windows = int(win.max()) + 1 if el.ne else 0           # of the rank
+        L = np.bincount(win, W, minlength=self.windows)              # L_w
+        keep, xi = np.arange(self.windows), np.ones(self.windows)
+        if per_patch is not None and el.ne:
+            keep, xi = stratified(patch_of(cols, win, self.windows), per_patch)
+        kept = np.full(self.windows, -1)
+        kept[keep] = np.arange(len(keep))
+        q = np.flatnonzero(kept[win] >= 0)
+        cols, vals, self.L2, W = cols[q], vals[q], L2[q], W[q]
+        self.win, self.L, self.xi = kept[win[q]], L[keep], xi
+        self.D = sparse.csr_matrix((vals.ravel(), cols.ravel(),
+                                    np.arange(0, cols.size + 1, cols.shape[1])),
+                                   shape=(len(cols), vol.size))
         self.share = W / self.L[self.win]                            # W_q / L_w
         mean = sparse.csc_matrix((self.share / self.L2, (self.win, np.arange(len(W)))),
-                                 shape=(nwin, len(W)))  # ∂ē_w/∂e_q / L_q²
+                                 shape=(len(self.L), len(W)))  # ∂ē_w/∂e_q / L_q²
         # the points over each patch of V: their rows of D share 32 columns
         keys, patch = np.unique(cols, axis=0, return_inverse=True)
         patch = patch.ravel()
@@ -96,35 +104,84 @@ class ShellStretch:
         return t, np.bincount(self.win, self.share * e, minlength=len(self.L))
 
     def energy(self, A):
-        """E_s = ½ EA Σ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
+        """E_s = ½ EA Σ_w ξ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
         _, ebar = self._strain(A)
-        return 0.5 * self.EA * float(np.sum(self.L * ebar**2))
+        return 0.5 * self.EA * float(np.sum(self.xi * self.L * ebar**2))
 
     def _forces(self, A):
-        """t_q and f_q = EA L_w ē_w W_q / (L_w L_q²) at every point."""
+        """t_q and f_q = EA ξ_w L_w ē_w W_q / (L_w L_q²) at every point."""
         t, ebar = self._strain(A)
-        return t, self.EA * (self.L * ebar)[self.win] * self.share / self.L2
+        return t, self.EA * (self.xi * self.L * ebar)[self.win] * self.share / self.L2
 
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
         t, f = self._forces(A)
         out += self.D.T @ (scale * f[:, None] * t)
 
-    def add_hessian(self, A, out):
-        """out (3n, 3n) += ∂²E_s/∂α², α interleaved (3c + i): the points'
-        Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and Jᵀ diag(EA L) J."""
+    def hessian(self, A):
+        """∂²E_s/∂α² (3n × 3n, scipy CSR), α interleaved (3c + i): the
+        points' Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and
+        Jᵀ diag(EA ξ L) J."""
         t, f = self._forces(A)
         n = self.D.shape[1]
-        S = np.zeros((n, n))
-        J = np.zeros((len(self.L), 3 * n))
+        S, J = [], []
         for rows, key, Dp, touched, dofs, mean in self.patches:
-            S[np.ix_(key, key)] += Dp.T @ (Dp * f[rows, None])
+            block = Dp.T @ (Dp * f[rows, None])
+            S.append((np.repeat(key, len(key)), np.tile(key, len(key)), block.ravel()))
             Dt = (Dp[:, :, None] * t[rows, None, :]).reshape(len(rows), -1)
-            J[np.ix_(touched, dofs)] += mean @ Dt
-        H = out.reshape(n, 3, n, 3)
-        for i in range(3):
-            H[:, i, :, i] += S
-        out += J.T @ (J * (self.EA * self.L)[:, None])
+            Jp = mean @ Dt
+            J.append((np.repeat(touched, len(dofs)), np.tile(dofs, len(touched)),
+                      Jp.ravel()))
+        S = sparse.coo_matrix(_coo(S), shape=(n, n)) if S else sparse.coo_matrix((n, n))
+        J = sparse.csr_matrix(_coo(J), shape=(len(self.L), 3 * n)) if J else \
+            sparse.csr_matrix((0, 3 * n))
+        H = sparse.kron(S, sparse.identity(3), format="csr")
+        return H + J.T @ sparse.diags(self.EA * self.xi * self.L) @ J
+
+    def pattern(self):
+        """The scalar pattern (n × n, scipy) of ``hessian``'s couplings: the
+        volume control points that a stitch's points reach, all to all."""
+        reach = abs(sparse.csr_matrix((np.ones(len(self.win)), (self.win,
+                                       np.arange(len(self.win)))),
+                                      shape=(len(self.L), len(self.win)))) @ abs(self.D)
+        reach.data[:] = 1.0
+        return reach.T @ reach
+
+    def add_hessian(self, A, out):
+        """out (3n, 3n) += ∂²E_s/∂α² (``hessian``)."""
+        out += self.hessian(A).toarray()
+
+
+def _coo(parts):
+    """(values, (rows, columns)) of COO triplets (rows, columns, values)."""
+    rows, cols, vals = (np.concatenate(p) for p in zip(*parts))
+    return vals, (rows, cols)
+
+
+def patch_of(cols, win, nwin):
+    """The patch of V of each window: that of its first Gauss point (rows
+    ``cols`` of D, the window of each point ``win``), as an index."""
+    first = np.full(nwin, len(win))
+    np.minimum.at(first, win, np.arange(len(win)))
+    _, patch = np.unique(cols[first], axis=0, return_inverse=True)
+    return patch.ravel()
+
+
+def stratified(patch, per_patch):
+    """(windows, weights ξ): in every patch, ``per_patch`` of its windows
+    spread evenly through it (all when it has fewer), each weighted by the
+    windows of the patch it stands for: Σ_{w∈S} ξ_w = the window count."""
+    order = np.argsort(patch, kind="stable")
+    start = np.searchsorted(patch[order], np.arange(patch.max() + 2))
+    keep, xi = [], []
+    for a, b in zip(start[:-1], start[1:]):
+        m = min(per_patch, b - a)
+        if m:
+            keep.append(order[a + (np.arange(m) * (b - a)) // m])
+            xi.append(np.full(m, (b - a) / m))
+    keep, xi = np.concatenate(keep), np.concatenate(xi)
+    order = np.argsort(keep)
+    return keep[order], xi[order]
 
 
 def shell_rows(volume, params, elements):
