@@ -172,7 +172,8 @@ def sampling_note(system):
              f"weight {rep['max_weight']:.3g}, force error {rep['training_error']:.2g} "
              f"training, {rep['held_out_error']:.2g} held out; {rep['source']}")
     if shell is not None:
-        words += f"; shell stretch on {len(shell.L)} of {shell.windows} stitches"
+        words += (f"; its stretch the shell's, on {len(shell.L)} of {shell.windows} "
+                  f"stitches")
     if system.contact is not None:
         words += "; bodies on the elements near them"
     return f" ({words})"
@@ -580,9 +581,11 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         with EV_PTAP:
             T.zero()
             (T.add_dense if isinstance(yarns, np.ndarray) else T.add)(yarns)
-            for part in (self.shell, self.contact):
-                if part is not None:
-                    T.add(part.hessian(A))
+            if self.shell is not None:
+                for part in self.shell.hessian_parts(A):
+                    T.add(part)
+            if self.contact is not None:
+                T.add(self.contact.hessian(A))
             self.K = T.assemble()
         return self.K
 

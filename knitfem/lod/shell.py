@@ -84,18 +84,19 @@ class ShellStretch:
                                     np.arange(0, cols.size + 1, cols.shape[1])),
                                    shape=(len(cols), vol.size))
         self.share = W / self.L[self.win]                            # W_q / L_w
-        mean = sparse.csc_matrix((self.share / self.L2, (self.win, np.arange(len(W)))),
-                                 shape=(len(self.L), len(W)))  # ∂ē_w/∂e_q / L_q²
-        # the points over each patch of V: their rows of D share 32 columns
+        self.cols, self.vals = cols, vals
+        # the points over each patch of V share its 32 columns: their rows
+        # of D stacked a patch at a time, padded with zero rows
         keys, patch = np.unique(cols, axis=0, return_inverse=True)
         patch = patch.ravel()
-        self.patches = []
-        for k, key in enumerate(keys):
-            rows = np.flatnonzero(patch == k)
-            touched = np.unique(self.win[rows])                  # their windows
-            dofs = (3 * key[:, None] + np.arange(3)).ravel()
-            self.patches.append((rows, key, vals[rows], touched, dofs,
-                                 mean[touched][:, rows].tocsr()))
+        order = np.argsort(patch, kind="stable")
+        count = np.bincount(patch, minlength=len(keys))
+        slot = np.arange(len(patch)) - np.repeat(np.cumsum(count) - count, count)
+        self.keys = keys
+        self.stack = np.zeros((len(keys), count.max(initial=0), cols.shape[1]))
+        self.stack[patch[order], slot] = vals[order]
+        self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
+        self.where = (patch[order], slot, order)
 
     def _strain(self, A):
         """t_q (npts, 3) and ē_w (nwin,)."""
@@ -118,25 +119,46 @@ class ShellStretch:
         t, f = self._forces(A)
         out += self.D.T @ (scale * f[:, None] * t)
 
-    def hessian(self, A):
-        """∂²E_s/∂α² (3n × 3n, scipy CSR), α interleaved (3c + i): the
-        points' Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and
-        Jᵀ diag(EA ξ L) J."""
+    def hessian_parts(self, A):
+        """∂²E_s/∂α² (3n × 3n) as two scipy matrices whose sum it is, α
+        interleaved (3c + i): the points' Σ_q f_q D_qᵀ D_q ⊗ I₃ from the
+        patches' stacked rows (COO, its 3 × 3 blocks' diagonals), and
+        Jᵀ diag(EA ξ L) J, J_w = Σ_{q∈w} W_q/(L_w L_q²) D_qᵀ t_q (J on a
+        pattern laid out at the first call)."""
         t, f = self._forces(A)
         n = self.D.shape[1]
-        S, J = [], []
-        for rows, key, Dp, touched, dofs, mean in self.patches:
-            block = Dp.T @ (Dp * f[rows, None])
-            S.append((np.repeat(key, len(key)), np.tile(key, len(key)), block.ravel()))
-            Dt = (Dp[:, :, None] * t[rows, None, :]).reshape(len(rows), -1)
-            Jp = mean @ Dt
-            J.append((np.repeat(touched, len(dofs)), np.tile(dofs, len(touched)),
-                      Jp.ravel()))
-        S = sparse.coo_matrix(_coo(S), shape=(n, n)) if S else sparse.coo_matrix((n, n))
-        J = sparse.csr_matrix(_coo(J), shape=(len(self.L), 3 * n)) if J else \
-            sparse.csr_matrix((0, 3 * n))
-        H = sparse.kron(S, sparse.identity(3), format="csr")
-        return H + J.T @ sparse.diags(self.EA * self.xi * self.L) @ J
+        p, slot, order = self.where
+        fs = np.zeros(self.stack.shape[:2])
+        fs[p, slot] = f[order]
+        # a GEMM a patch (numpy's stacked matmul does not call BLAS)
+        blocks = np.stack([a @ b for a, b in zip(self.stack_t, self.stack * fs[..., None])])
+        k, c = self.keys.shape[1], np.arange(3)
+        rows = (3 * np.repeat(self.keys, k, axis=1)[..., None] + c).ravel()
+        cols = (3 * np.tile(self.keys, k)[..., None] + c).ravel()
+        S = sparse.coo_matrix((np.repeat(blocks.ravel(), 3), (rows, cols)),
+                              shape=(3 * n, 3 * n))
+        Jv = (self.share / self.L2)[:, None, None] * self.vals[:, :, None] * t[:, None, :]
+        if getattr(self, "J", None) is None:
+            J = sparse.csr_matrix(
+                (np.arange(1, Jv.size + 1, dtype=float),
+                 (np.repeat(self.win, Jv[0].size),
+                  (3 * self.cols[:, :, None] + c).ravel())), shape=(len(self.L), 3 * n))
+            self.J = sparse.csr_matrix((np.zeros(J.nnz), J.indices, J.indptr),
+                                       shape=J.shape)
+            self.jpos = np.zeros(Jv.size, dtype=np.int64)       # summed where they meet
+            coo = sparse.coo_matrix((np.arange(Jv.size), (np.repeat(self.win, Jv[0].size),
+                                    (3 * self.cols[:, :, None] + c).ravel())), shape=J.shape)
+            keys = coo.row.astype(np.int64) * J.shape[1] + coo.col
+            jkeys = np.repeat(np.arange(J.shape[0]), np.diff(J.indptr)) * J.shape[1] \
+                + J.indices
+            self.jpos[coo.data] = np.searchsorted(jkeys, keys)
+        self.J.data[:] = np.bincount(self.jpos, Jv.ravel(), minlength=self.J.nnz)
+        return S, self.J.T @ sparse.diags(self.EA * self.xi * self.L) @ self.J
+
+    def hessian(self, A):
+        """∂²E_s/∂α² (3n × 3n, scipy CSR): the sum of ``hessian_parts``."""
+        S, JJ = self.hessian_parts(A)
+        return S.tocsr() + JJ
 
     def pattern(self):
         """The scalar pattern (n × n, scipy) of ``hessian``'s couplings: the
@@ -150,12 +172,6 @@ class ShellStretch:
     def add_hessian(self, A, out):
         """out (3n, 3n) += ∂²E_s/∂α² (``hessian``)."""
         out += self.hessian(A).toarray()
-
-
-def _coo(parts):
-    """(values, (rows, columns)) of COO triplets (rows, columns, values)."""
-    rows, cols, vals = (np.concatenate(p) for p in zip(*parts))
-    return vals, (rows, cols)
 
 
 def patch_of(cols, win, nwin):
