@@ -80,7 +80,9 @@ class ShellStretch:
         q = np.flatnonzero(kept[win] >= 0)
         cols, vals, self.L2, W = cols[q], vals[q], L2[q], W[q]
         self.win, self.L, self.xi = kept[win[q]], L[keep], xi
-        self.D = sparse.csr_matrix((vals.ravel(), cols.ravel(),
+        # D's own copies: scipy sorts a row's columns (a periodic volume's
+        # wrap round) in place, which must not reorder ``vals``
+        self.D = sparse.csr_matrix((vals.ravel().copy(), cols.ravel().copy(),
                                     np.arange(0, cols.size + 1, cols.shape[1])),
                                    shape=(len(cols), vol.size))
         self.share = W / self.L[self.win]                            # W_q / L_w
@@ -143,6 +145,8 @@ class ShellStretch:
                 (np.arange(1, Jv.size + 1, dtype=float),
                  (np.repeat(self.win, Jv[0].size),
                   (3 * self.cols[:, :, None] + c).ravel())), shape=(len(self.L), 3 * n))
+            J.sum_duplicates()
+            J.sort_indices()
             self.J = sparse.csr_matrix((np.zeros(J.nnz), J.indices, J.indptr),
                                        shape=J.shape)
             self.jpos = np.zeros(Jv.size, dtype=np.int64)       # summed where they meet
