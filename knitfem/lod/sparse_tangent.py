@@ -108,11 +108,5 @@ class SparseTangent:
         self.mat.assemble()
         return self.mat
 
-    def dense(self):
-        """The whole matrix as a dense array (for tests)."""
-        R = np.zeros((self.N, self.N))
-        R.ravel()[self.keys] = self.values
-        return R
-
     def destroy(self):
         self.mat.destroy()
