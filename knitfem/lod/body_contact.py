@@ -67,7 +67,7 @@ class ActiveContact:
             (embedding.vals.ravel(), embedding.cols.ravel(),
              np.arange(0, embedding.cols.size + 1, embedding.cols.shape[1])),
             shape=(len(embedding.cols), n))                         # Γ̃ (rank's)
-        self.allowance = 2 * self.radius
+        self.allowance, self.step_h = 2 * self.radius, None
         self.active = np.zeros(0, dtype=int)
         self.barrier, self.start, self.window, self.refusals = None, None, None, 0
         self._use(np.zeros(0, dtype=int))
@@ -96,7 +96,7 @@ class ActiveContact:
         """A step starts from α⁰ = ``alpha`` at t₀: the set is formed again at
         its first ``move``."""
         self.start = (np.array(alpha), t0)
-        self.window = None
+        self.window, self.step_h = None, None
 
     def move(self, t0, t1):
         """The step (or a part of it) runs from t0 to t1: the bodies posed at
@@ -112,6 +112,8 @@ class ActiveContact:
             if not np.array_equal(e, self.active):
                 self._use(e)
             self.barrier.lag(self.Ga @ alpha0, ts)
+            self.step_h = self.step_h or t1 - t0        # the step as first tried
+            self.barrier.set_step(self.step_h)
             self.window = (t0, t1)
         self.barrier.step_to(t0, t1)
 

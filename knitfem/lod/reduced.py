@@ -42,7 +42,7 @@ DENSE_LIMIT = 200
 """Volume control points up to which the reduced tangent is formed dense
 (one GEMM a patch and LAPACK's LU), beyond which sparse (``SparseTangent``
 and MUMPS)."""
-SHELL_WINDOWS = 12
+SHELL_WINDOWS = 16
 """Stitches a volume patch on which a sampled model measures the shell
 stretch (``shell.stratified``)."""
 
