@@ -153,6 +153,7 @@ class ActiveContact:
         self.barrier.add_hessian(self._x(alpha), self.slot3, values)
         n3 = self.Ga3.shape[0]
         K = sparse.csr_matrix((values, self.indices3, self.indptr3), shape=(n3, n3))
+        K.eliminate_zeros()            # the set's elements outside the gap
         return self.Ga3.T @ (K @ self.Ga3)
 
     def step_limit(self, alpha, dalpha):
