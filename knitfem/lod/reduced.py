@@ -191,7 +191,7 @@ def sampling_note(system):
     if shell is not None:
         words += (f"; its stretch the shell's, on {len(shell.L)} of {shell.windows} "
                   f"stitches")
-    if system.contact is not None:
+    if getattr(system, "contact", None) is not None:
         words += "; bodies on the elements near them"
     return f" ({words})"
 
