@@ -416,7 +416,10 @@ class Barrier:
         if len(e):
             B = self.el.B
             blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
-            np.add.at(values, slot[e], blocks)
+            where = slot[e].ravel()
+            mine = where >= 0                          # rows of this rank
+            values += np.bincount(where[mine], blocks.ravel()[mine],
+                                  minlength=len(values))
 
     def swept_depth(self, x0, x1, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
