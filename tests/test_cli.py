@@ -418,11 +418,11 @@ def test_reduced_drape_defaults_to_the_shell_settling_in_backward_euler(tmp_path
     assert summary["steps"] == 3 and summary["integrator"] == "implicit"
 
 
-def test_shell_stretch_beyond_the_dense_tangent_is_a_usage_error(tmp_path):
+def test_shell_stretch_beyond_the_dense_tangent_needs_compiled_kernels(tmp_path):
     p = knitfem("run", "-knit_model", "reduced", "-knit_stretch", "shell",
-                "-knit_lod", "11,11", "-knit_rows", "3", "-knit_cols", "3",
-                "-o", str(tmp_path))
-    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "-knit_lod" in p.stderr
+                "-knit_lod", "11,11", "-knit_kernels", "numpy", "-knit_rows", "3",
+                "-knit_cols", "3", "-o", str(tmp_path))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "compiled" in p.stderr
 
 
 def test_declarations_are_what_help_lists():

@@ -282,3 +282,24 @@ def test_a_step_through_a_thin_body_is_refused(check):
         assert middle[1] > rod.a[1] + rod.R and model.min_collider_distance(x) > 0
     else:
         assert middle[1] < rod.a[1] - 0.02                  # fell through
+
+
+def test_friction_smoothing_follows_the_step_as_first_tried():
+    """ε = ε_v h of the step as first tried: its halvings keep it, the next
+    step's lag takes the next step's."""
+    from knitfem.contact.colliders import SLIP_SPEED
+
+    fab = jersey(2, 2)
+    fab.bodies, fab.friction = (BODIES["plane"],), 0.3
+    model = FullModel(SELF, fab, Material())
+    x = model.rest_state()
+    barrier = model.barrier
+    model.begin_step(x, 0.0)
+    model.move_bodies(0.0, 0.01)
+    assert barrier.eps_slip == pytest.approx(SLIP_SPEED * 0.01, rel=1e-12)
+    model.move_bodies(0.0, 0.005)                     # the step halved
+    assert barrier.eps_slip == pytest.approx(SLIP_SPEED * 0.01, rel=1e-12)
+    model.begin_step(x, 0.005)
+    model.move_bodies(0.005, 0.0075)
+    assert barrier.eps_slip == pytest.approx(SLIP_SPEED * 0.0025, rel=1e-12)
+    model.destroy()

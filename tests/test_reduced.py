@@ -153,3 +153,193 @@ def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol)
     # round-off (explicit) or Newton's tolerance, 1e-9 radii a step (implicit)
     assert np.allclose(ef, er, rtol=0, atol=tol * fab.radius)
     assert np.abs(ef - fab.X.ravel()).max() > 1e-4 * tol ** 0.5  # it did move
+
+
+# -- the sparse reduced tangent, the shell on sampled stitches, bodies on an
+# -- active set ---------------------------------------------------------------
+def bodied(per_patch=None, sampled=True, friction=0.3):
+    """A reduced model of a 4 × 3 jersey pressed onto a sphere, its stretch
+    the shell's (on ``per_patch`` stitches a patch), the yarn elements
+    sampled (every one at weight 1) with the contact on its active set, or
+    exact."""
+    from knitfem.contact.colliders import Sphere
+    from knitfem.lod.body_contact import ActiveContact
+    from knitfem.lod.reduced import Embedding, ReducedModel
+    from knitfem.lod.sampling import SampledElements
+    from knitfem.lod.shell import ShellStretch
+    from knitfem.lod.volume import BoundingVolume
+    from knitfem.model.full import FullModel
+
+    fab = jersey(4, 3)
+    X = fab.X.reshape(-1, 3)
+    corner = X[np.argmin(X[:, 0] + X[:, 1] + X[:, 2])]        # under a corner
+    fab.bodies = (Sphere(corner - [0, 0, 0.004 + fab.radius * 1.05], 0.004),)
+    fab.friction = friction
+    full = FullModel(SELF, fab, Material(), stretch=False)
+    emb = Embedding(SELF, full.layout, fab,
+                    BoundingVolume.around(X, 5, 5, margin=fab.radius))
+    shell = ShellStretch(full, emb, per_patch=per_patch)
+    if not sampled:
+        return ReducedModel(full, emb, shell=shell)
+    every = np.arange(full.elements.ne)
+    return ReducedModel(full, emb, SampledElements(full, emb, every, np.ones(len(every))),
+                        shell=shell, contact=ActiveContact(full, emb))
+
+
+def pressed_state(red, seed=4):
+    """α pushed 3 r down (z), into the sphere, and jiggled, the contact
+    set and friction lagged from rest."""
+    a0 = red.rest_state()
+    red.begin_step(a0, 0.0)
+    red.move_bodies(0.0, 0.01)
+    a = a0.copy()
+    arr = a.getArray().reshape(-1, 3)
+    arr[:, 2] -= 3.0 * red.fabric.radius
+    arr += 2e-5 * np.random.default_rng(seed).standard_normal(arr.shape)
+    if red.contact is not None:
+        assert red.contact.energy(arr) > 0
+    return a
+
+
+def tangent_of(red, a, sparse):
+    """red's tangent at a, on the dense path or on the sparse one."""
+    from knitfem.lod.reduced import DENSE_LIMIT
+    from knitfem.lod.sparse_tangent import SparseTangent, scalar_pattern
+
+    if sparse and red.sparse is None:
+        pattern = scalar_pattern(red.m) + red.shell.pattern()
+        red.sparse = SparseTangent(red.comm, pattern, red.M.getOwnershipRange())
+    assert (red.sparse is not None) == sparse or red.embedding.volume.size > DENSE_LIMIT
+    if not sparse:
+        red.sparse = None
+    red.K = None
+    return to_scipy(red.stiffness(a)).toarray()
+
+
+@pytest.mark.parametrize("sampled", [True, False])
+def test_sparse_reduced_tangent_equals_the_dense_one(sampled):
+    """Γᵀ K Γ on the fixed sparse pattern (the sampled elements', the shell's
+    and the contact set's parts) equals the dense tangent to round-off, and
+    nothing falls outside the pattern."""
+    red = bodied(sampled=sampled)
+    a = pressed_state(red)
+    dense = tangent_of(red, a, sparse=False)
+    sparse = tangent_of(red, a, sparse=True)
+    assert red.sparse.outside == 0
+    # measured 1.3e-16 of the largest entry
+    assert np.allclose(sparse, dense, rtol=0, atol=1e-15 * np.abs(dense).max())
+    assert red.contact is None or len(red.contact.active) > 0
+
+
+def test_sparse_reduced_tangent_is_the_force_derivative():
+    """The sparse tangent (barrier, lagged friction and shell on the active
+    set and sampled stitches) against central differences of the forces."""
+    red = bodied(per_patch=3)
+    a = pressed_state(red, 5)
+    K = tangent_of(red, a, sparse=True)
+    d = np.random.default_rng(6).standard_normal(a.getLocalSize())
+
+    def Q(h):
+        b = a.copy()
+        b.getArray()[:] += h * d
+        out, v = b.duplicate(), b.duplicate()
+        v.zeroEntries()
+        red.forces(b, v, out)
+        return out.getArray().copy()
+
+    h = 1e-9
+    fd = (Q(-h) - Q(h)) / (2 * h)
+    # measured 8.2e-10 of the largest
+    assert np.allclose(K @ d, fd, rtol=0, atol=5e-9 * np.abs(fd).max())
+
+
+def test_sparse_tangent_of_a_sleeve_on_a_moving_arm_is_the_force_derivative():
+    """The same on a tube in its periodic volume (a stitch's columns wrap
+    round), landed on the turning forearm, the yarns sampled by quadrature."""
+    from knitfem.cli.scenes import make_fabric
+    from knitfem.knit.pattern import Jersey
+    from knitfem.lod.body_contact import ActiveContact
+    from knitfem.lod.reduced import Embedding, ReducedModel
+    from knitfem.lod.sampling import SampledElements, quadrature_set
+    from knitfem.lod.shell import ShellStretch
+    from knitfem.lod.volume import BoundingVolume
+    from knitfem.model.full import FullModel
+
+    fab = make_fabric("sleeve", Jersey(4, 12), elbow_angle=60.0, elbow_time=0.1)
+    full = FullModel(SELF, fab, Material(), stretch=False)
+    emb = Embedding(SELF, full.layout, fab, BoundingVolume.tube(
+        fab.X, 6, 5, margin=fab.radius, frame=fab.frame))
+    elements, weights, _ = quadrature_set(full, emb)
+    red = ReducedModel(full, emb, SampledElements(full, emb, elements, weights),
+                       shell=ShellStretch(full, emb, per_patch=3),
+                       contact=ActiveContact(full, emb))
+    a = red.rest_state()
+    red.begin_step(a, 0.05)
+    red.move_bodies(0.05, 0.06)
+    arr = a.getArray().reshape(-1, 3)
+    arr[:, 1] -= 0.3 * np.ptp(arr[:, 1])              # onto the arm
+    arr += 1e-5 * np.random.default_rng(1).standard_normal(arr.shape)
+    assert red.contact.energy(arr) > 0
+    K = tangent_of(red, a, sparse=True)
+    d = np.random.default_rng(2).standard_normal(a.getLocalSize())
+
+    def Q(h):
+        b = a.copy()
+        b.getArray()[:] += h * d
+        out, v = b.duplicate(), b.duplicate()
+        v.zeroEntries()
+        red.forces(b, v, out)
+        return out.getArray().copy()
+
+    h = 1e-9
+    fd = (Q(-h) - Q(h)) / (2 * h)
+    # measured 2.0e-9 of the largest
+    assert np.allclose(K @ d, fd, rtol=0, atol=1e-8 * np.abs(fd).max())
+
+
+def test_contact_set_is_the_whole_barrier_through_gamma():
+    """On the active set the barrier's and friction's forces equal the full
+    model's over every yarn element, taken through Γᵀ: the set misses no
+    element within the gap."""
+    red = bodied()
+    a = pressed_state(red, 7)
+    A = a.getArray().reshape(-1, 3)
+    full = red.full
+    full.begin_step(red.full_state(red.rest_state()), 0.0)
+    full.move_bodies(0.0, 0.01)
+    x = full.yarn_points(red.full_state(a))
+    g = np.zeros_like(x)
+    full.barrier.add_gradient(x, g, -1.0)
+    ref = red.contact.G.T @ g
+    f = np.zeros_like(A)
+    red.contact.add_forces(A, f)
+    assert np.abs(ref).max() > 0
+    # measured 0 (the same sums in the same order)
+    assert np.allclose(f, ref, rtol=0, atol=1e-15 * np.abs(ref).max())
+    assert len(red.contact.active) < full.elements.ne
+
+
+def test_shell_on_sampled_stitches_weighs_what_it_stands_for():
+    """Every patch's stitches sampled: exact; a few a patch: weights summing
+    to the stitch count, and the rest and rigid motions still free."""
+    every, some = bodied(per_patch=1000), bodied(per_patch=2)
+    assert np.array_equal(every.shell.xi, np.ones(every.shell.windows))
+    assert len(some.shell.L) < some.shell.windows
+    assert np.isclose(some.shell.xi.sum(), some.shell.windows)
+    rest = some.rest_state().getArray().reshape(-1, 3)
+    f = np.zeros_like(rest)
+    some.shell.add_gradient(rest @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]).T
+                            + 0.01, f)
+    assert np.abs(f).max() < 1e-15 * some.shell.EA          # measured 1.1e-16
+
+
+def test_a_sleeve_gets_a_volume_a_patch_every_few_stitches():
+    """garment_lod: 12 × 15 × 2 = 360 control points for 60 × 120 stitches;
+    the default 6 × 6 for a small tube."""
+    from knitfem.knit.pattern import Jersey, jersey_fabric
+    from knitfem.lod.reduced import garment_lod
+
+    big = jersey_fabric(Jersey(120, 60, knit="tube"))
+    small = jersey_fabric(Jersey(10, 16, knit="tube"))
+    assert garment_lod(big, (6, 6)) == (12, 15)
+    assert garment_lod(small, (6, 6)) == (6, 6)

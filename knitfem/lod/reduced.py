@@ -6,14 +6,18 @@ equations in α are
 
     M^V α̈ = Q^V + (CΓ)ᵀλ,   (CΓ) α = d,   M^V = Γᵀ M Γ,   Q^V = Γᵀ Q(Γα, Γα̇),
 
-M^V formed once by PETSc's PtAP. The tangent Γᵀ K Γ is formed densely from
-the values of K (``GroupedTangent``: a compiled kernel and one GEMM a patch
-of V) while the volume has at most ``DENSE_LIMIT`` control points and the
-kernels are compiled, and by PtAP, the symbolic product reused, otherwise.
-With -knit_stretch shell the yarns' stretch is measured on the volume read
-as a shell, a stitch at a time (``shell.ShellStretch``), so that it bends
-and shears like a knit. Contacts are dropped (the embedding keeps the
-stitches together); fixed
+m^V = Γ̃ᵀ m Γ̃ formed once by PETSc's PtAP, M^V = m^V ⊗ I₃. The tangent
+Γᵀ K Γ is formed densely from the values of K (``GroupedTangent``: a
+compiled kernel and one GEMM a patch of V) while the volume has at most
+``DENSE_LIMIT`` control points and the kernels are compiled, and by PtAP,
+the symbolic product reused, otherwise; a sampled or shell-stretched model
+beyond ``DENSE_LIMIT`` sums its parts into a fixed sparse pattern
+(``sparse_tangent.SparseTangent``). With -knit_stretch shell the yarns'
+stretch is measured on the volume read as a shell, a stitch at a time
+(``shell.ShellStretch``), so that it bends and shears like a knit; with
+bodies the sampled model meets them on the yarn elements near them
+(``body_contact.ActiveContact``). Contacts are dropped (the embedding keeps
+the stitches together); fixed
 points and clamps stay, reduced to an independent set of rows (a
 rank-revealing SVD of cΓ̃), because several fixed points can say the same
 thing about α.
@@ -35,6 +39,12 @@ EV_PTAP = PETSc.Log.Event("knitPtAP")
 
 
 DENSE_LIMIT = 200
+"""Volume control points up to which the reduced tangent is formed dense
+(one GEMM a patch and LAPACK's LU), beyond which sparse (``SparseTangent``
+and MUMPS)."""
+SHELL_WINDOWS = 16
+"""Stitches a volume patch on which a sampled model measures the shell
+stretch (``shell.stratified``)."""
 
 
 def even_split(comm, n):
@@ -86,8 +96,8 @@ def volume_options(opts, bodies=False):
     which a volume of three patches a way can wrap) and -knit_volume FILE."""
     lod = opts.getInts("lod", (6, 6) if bodies else (5, 5), "bounding-volume "
                        "control points n1,n2 (6,6 with -knit_collider or drape; "
-                       "a tube on bodies: about one every 3.5 cm around and "
-                       "along, at most 200 in all)", 2, 4)
+                       "a tube on bodies: a patch every 5 stitches around and "
+                       "10 courses along)", 2, 4)
     path = opts.getString("volume", "", "bounding volume file (meshio; default: "
                           "a box around the fabric at rest)")
     return lod, path
@@ -100,7 +110,9 @@ def sampling_options(opts, default="sampled"):
                           "reduced model's yarn forces (and, asked for, the mixed "
                           "model's volume part): a trained weighted sample of the "
                           "yarn elements (ECSW), two stitches a volume patch "
-                          "weighted by what they stand for, or every element")
+                          "weighted by what they stand for, or every element "
+                          "(with bodies: exact up to 200 volume control points, "
+                          "quadrature beyond)")
     tol = opts.getReal("sampling_tol", 2e-3, "relative force error the sampled "
                        "set is trained to", positive=True)
     return kind, tol
@@ -117,31 +129,49 @@ def stretch_options(opts, bodies=False):
                           "-knit_collider, yarn otherwise)")
 
 
+def body_sampling(size):
+    """The default -knit_sampling of a reduced model on bodies whose volume
+    has ``size`` control points: exact up to ``DENSE_LIMIT`` (a small
+    garment's yarns cost less than the sampled model's contact set and
+    ECSW's training; the drape at 12 × 12 took 4.4 s a step exact, 6.5 s
+    sampled, on a loaded machine), the training-free quadrature beyond
+    (ECSW's training grows with the volume squared times its candidates)."""
+    return "exact" if size <= DENSE_LIMIT else "quadrature"
+
+
 def reduced_from_options(opts, full, embedding):
     """The ReducedModel of -knit_sampling: sampled (the set trained or read
-    from the cache, said in one line) unless exact is asked for, bodies
-    need every yarn point or the stretch is the shell's (-knit_stretch
-    shell: ``full`` was built without its own, ``stretch_options``)."""
+    from the cache, said in one line; its shell stretch, -knit_stretch
+    shell, on ``SHELL_WINDOWS`` stitches a volume patch; its contact with
+    bodies on the elements near them) unless exact is asked for, which
+    sums every yarn element (``full`` was built without its own stretch
+    under -knit_stretch shell, ``stretch_options``)."""
+    from knitfem.lod.body_contact import ActiveContact
     from knitfem.lod.sampling import SampledElements, over_ranks, quadrature_set, sampled_set
     from knitfem.lod.shell import ShellStretch
 
-    kind, tol = sampling_options(opts)
+    size = embedding.volume.size
+    kind, tol = sampling_options(
+        opts, "sampled" if full.barrier is None else body_sampling(size))
+    shell = None
     if not full.stretch:
-        if embedding.volume.size > DENSE_LIMIT or full.kernels.kind != "compiled":
-            raise KnitError(f"-knit_stretch shell needs the reduced model's dense "
-                            f"tangent: at most {DENSE_LIMIT} volume control points "
-                            f"(-knit_lod) and -knit_kernels compiled")
-        return ReducedModel(full, embedding, shell=ShellStretch(full, embedding))
-    if kind == "exact" or full.fabric.bodies:
-        return ReducedModel(full, embedding)
+        if size > DENSE_LIMIT and full.kernels.kind != "compiled":
+            raise KnitError(f"-knit_stretch shell on more than {DENSE_LIMIT} volume "
+                            f"control points needs -knit_kernels compiled")
+        shell = ShellStretch(full, embedding,
+                             per_patch=None if kind == "exact" else SHELL_WINDOWS)
+    if kind == "exact":
+        return ReducedModel(full, embedding, shell=shell)
     if kind == "quadrature":
         elements, weights, report = quadrature_set(full, embedding)
         report.update(source="no training", cached=False)
     else:
         elements, weights, report = sampled_set(full, embedding, tol)
         report["source"] = f"{'cached' if report['cached'] else 'trained'} {report['cache']}"
+    contact = ActiveContact(full, embedding) if full.barrier is not None else None
     model = ReducedModel(full, embedding,
-                         SampledElements(full, embedding, elements, weights))
+                         SampledElements(full, embedding, elements, weights),
+                         shell=shell, contact=contact)
     model.sampling = dict(over_ranks(full.comm, report), kind=kind)
     return model
 
@@ -151,27 +181,31 @@ def sampling_note(system):
     the force errors and where the set came from) or a shell-stretched one
     ('' for other models)."""
     rep = getattr(system, "sampling", None)
-    if getattr(system, "shell", None) is not None:
-        return " (every yarn element, its stretch the shell's, a stitch at a time)"
+    shell = getattr(system, "shell", None)
     if not rep:
-        return ""
-    return (f" ({rep['kind']}: {rep['elements']} of {rep['of']} yarn elements, largest "
-            f"weight {rep['max_weight']:.3g}, force error {rep['training_error']:.2g} "
-            f"training, {rep['held_out_error']:.2g} held out; {rep['source']})")
+        return (" (every yarn element, its stretch the shell's, a stitch at a time)"
+                if shell is not None else "")
+    words = (f"{rep['kind']}: {rep['elements']} of {rep['of']} yarn elements, largest "
+             f"weight {rep['max_weight']:.3g}, force error {rep['training_error']:.2g} "
+             f"training, {rep['held_out_error']:.2g} held out; {rep['source']}")
+    if shell is not None:
+        words += (f"; its stretch the shell's, on {len(shell.L)} of {shell.windows} "
+                  f"stitches")
+    if getattr(system, "contact", None) is not None:
+        words += "; bodies on the elements near them"
+    return f" ({words})"
 
 
-def garment_lod(fabric, lod, spacing=0.035):
-    """Control points (around, along) of a tube's volume on bodies: about
-    one a ``spacing`` [m] around and along it (a sleeve that bends at an
-    elbow), at least ``lod``, at most ``DENSE_LIMIT`` in all (the shell
-    stretch's dense tangent)."""
-    pts = fabric.X.reshape(-1, 3) @ np.asarray(fabric.frame)
-    around = 2 * np.pi * np.hypot(*(pts[:, [0, 2]] - pts[:, [0, 2]].mean(0)).T).mean()
-    n = np.maximum(lod, [np.ceil(around / spacing), np.ceil(np.ptp(pts[:, 1]) /
-                                                            spacing) + 3])
-    while 2 * n.prod() > DENSE_LIMIT and n.max() > max(lod):
-        n[np.argmax(n)] -= 1
-    return tuple(int(k) for k in n)
+def garment_lod(fabric, lod, stitches=(5, 10)):
+    """Control points (around, along) of a tube's volume on bodies: a patch
+    of the volume for every ``stitches`` = (around, along) stitches (n1
+    patches around a periodic volume, n2 − 3 along), at least ``lod``; a
+    sleeve of 60 × 120 stitches gets 12 × 15 × 2 = 360."""
+    from knitfem.knit.pattern import SEGMENTS_PER_STITCH
+
+    around = int(np.max(fabric.yarn_nseg)) // SEGMENTS_PER_STITCH
+    return (max(lod[0], -(-around // stitches[0])),
+            max(lod[1], -(-fabric.nyarn // stitches[1]) + 3))
 
 
 def embedding_from_options(opts, comm, fabric, layout=None):
@@ -202,17 +236,19 @@ class EmbeddedModel:
     vectors ``eps`` and ``eps_ref``."""
 
     def _embed(self, full, G, Gs, prefix):
-        """What both share: the full model's data, M = Γᵀ M Γ and m = Γ̃ᵀ m Γ̃
-        by PtAP, Q_g = Γᵀ Q_g, and work vectors for ε and ε̇."""
+        """What both share: the full model's data, m = Γ̃ᵀ m Γ̃ by PtAP and
+        M = Γᵀ M Γ = m ⊗ I₃ from it, Q_g = Γᵀ Q_g, and work vectors for ε and ε̇."""
         self.full = full
         self.comm, self.material = full.comm, full.material
         self.total_mass = full.total_mass
         self.fabric, self.layout = full.fabric, full.layout
         with EV_PTAP:
-            self.M = full.M.PtAP(G)
             self.m = full.m.PtAP(Gs)
+            indptr, indices, values = self.m.getValuesCSR()
+            (n, N), _ = self.m.getSizes()
+            self.M = create_aij(self.comm, (3 * n, 3 * N), (3 * n, 3 * N),
+                                kron_identity(indptr, indices, values), bsize=3)
         self.M.setOptionsPrefix(prefix)
-        self.M.setBlockSize(3)
         self.Qg = G.createVecRight()
         G.multTranspose(full.Qg, self.Qg)
         self.eps, self.epsdot = G.createVecLeft(), G.createVecLeft()
@@ -327,22 +363,43 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
     def Gamma(self):
         return self.embedding.Gamma
 
-    def __init__(self, full, embedding, sampled=None, shell=None):
+    def __init__(self, full, embedding, sampled=None, shell=None, contact=None):
         self.embedding, self.sampled, self.shell = embedding, sampled, shell
+        self.contact = contact
         G = embedding.Gamma
         self._embed(full, G, embedding.Gamma_scalar, "reduced_MV_")
         self._world_constraints()
         self.Qfull = G.createVecLeft()
         self.K = None
-        self.dense = (GroupedTangent(full.pattern, embedding.cols, embedding.vals,
-                                     embedding.volume.size)
-                      if embedding.volume.size <= DENSE_LIMIT and sampled is None
-                      and full.kernels.kind == "compiled" else None)
+        size = embedding.volume.size
+        compiled = full.kernels.kind == "compiled"
+        self.dense = (GroupedTangent(full.pattern, embedding.cols, embedding.vals, size)
+                      if sampled is None and compiled and
+                      (size <= DENSE_LIMIT or shell is not None) else None)
+        self.sparse = None
+        if size > DENSE_LIMIT and (sampled is not None or shell is not None):
+            from knitfem.lod.sparse_tangent import SparseTangent, scalar_pattern
+
+            pattern = scalar_pattern(self.m)
+            if shell is not None:
+                pattern = pattern + self._summed_pattern(shell.pattern())
+            self.sparse = SparseTangent(self.comm, pattern, self.M.getOwnershipRange())
         if sampled is not None or shell is not None:   # every α on every rank
             self.gather, self.alpha_all = PETSc.Scatter.toAll(self.Qg)
         # the integrators' Newton matrices, too, are dense on one rank
-        self.dense_saddle = (self.dense is not None or sampled is not None) \
-            and self.comm.size == 1
+        self.dense_saddle = self.sparse is None and \
+            (self.dense is not None or sampled is not None) and self.comm.size == 1
+
+    def _summed_pattern(self, P):
+        """The union over the ranks of the scalar patterns P (collective)."""
+        if self.comm.size == 1:
+            return P
+        P = P.tocoo()
+        comm = self.comm.tompi4py()
+        rows, cols = (np.concatenate(comm.allgather(a)) for a in (P.row, P.col))
+        from scipy import sparse
+
+        return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=P.shape)
 
     def _world_constraints(self):
         """(CΓ) α = d for fixed points and clamps, as independent rows."""
@@ -394,12 +451,56 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         return self.alpha_all.getArray(readonly=True).reshape(-1, 3)
 
     def yarn_move(self, dq):
-        """max |Γ δq| over the yarn points that S touches when sampled (the
-        whole of Γ δq would cost what the yarns do), else over all."""
+        """max |Γ δq| over the yarn points that S and the contact set touch
+        when sampled (the whole of Γ δq would cost what the yarns do), else
+        over all."""
         if self.sampled is None:
             return super().yarn_move(dq)
         self.dq.getArray()[:] = dq
-        return max_over_ranks(self.comm, self.sampled.move(self._all(self.dq)))
+        d = self._all(self.dq)
+        move = self.sampled.move(d)
+        if self.contact is not None:
+            move = max(move, float(np.abs(self.contact.Ga @ d).max(initial=0.0)))
+        return max_over_ranks(self.comm, move)
+
+    # -- bodies: the contact set's when sampled, the full model's otherwise ---
+    def begin_step(self, q, t=None):
+        if self.contact is None:
+            return super().begin_step(q, t)
+        self.contact.begin(self._all(q), t)
+        return False
+
+    def move_bodies(self, t0, t1):
+        if self.contact is None:
+            return super().move_bodies(t0, t1)
+        self.contact.move(t0, t1)
+
+    def step_limit(self, q, dq):
+        if self.contact is None:
+            return super().step_limit(q, dq)
+        from mpi4py import MPI
+
+        a = self._all(q).copy()
+        return self.comm.tompi4py().allreduce(
+            self.contact.step_limit(a, self._all(dq)), op=MPI.MIN)
+
+    def tunnelled(self, q0, q1):
+        """Why the step from q0 to q1 must be refused, or None: the contact
+        set missed an element (``ActiveContact.missed``), or a yarn point of
+        it went deeper than one yarn radius into a body (collective)."""
+        if self.contact is None:
+            return super().tunnelled(q0, q1)
+        from mpi4py import MPI
+
+        a0 = self._all(q0).copy()
+        a1 = self._all(q1)
+        comm = self.comm.tompi4py()
+        if comm.allreduce(self.contact.missed(a0, a1), op=MPI.LOR):
+            return "the contact region grew beyond its set (formed again)"
+        depth = comm.allreduce(self.contact.swept_depth(a0, a1), op=MPI.MIN)
+        if depth >= -self.fabric.radius:
+            return None
+        return f"a yarn point went {-depth / self.fabric.radius:.2g} r into a body"
 
     def elastic_energy(self, q):
         """E(Γq), or, sampled, Σ_{e∈S} ξ_e E_e: the energy this model's
@@ -409,7 +510,12 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.shell is not None:
                 E += self.comm.tompi4py().allreduce(self.shell.energy(self._all(q)))
             return E
-        return self.comm.tompi4py().allreduce(self.sampled.energy(self._all(q)))
+        A = self._all(q)
+        E = self.sampled.energy(A)
+        for part in (self.shell, self.contact):
+            if part is not None:
+                E += part.energy(A)
+        return self.comm.tompi4py().allreduce(E)
 
     def forces(self, alpha, alphadot, Q):
         """Q^V = Γᵀ Q(Γα, Γα̇) = −Γᵀ ∂E/∂ε(Γα) + Γᵀ Q_g − c_d M^V α̇ (collective):
@@ -420,8 +526,13 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         with EV_FORCES:
             applied_forces(self, alphadot, Q)
             if self.sampled is not None:
+                A = self._all(alpha)
                 f = np.zeros((self.embedding.volume.size, 3))
-                self.sampled.add_forces(self._all(alpha), f)
+                self.sampled.add_forces(A, f)
+                if self.shell is not None:
+                    self.shell.add_gradient(A, f, -1.0)
+                if self.contact is not None:
+                    self.contact.add_forces(A, f)
                 self._add_summed(f, Q)
                 return
             G.mult(alpha, self.eps)
@@ -444,13 +555,29 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         unused); ``xref`` the MIP reference state (``FullModel.stiffness``)."""
         if self.sampled is not None:
             ref = None if xref is None else self._all(xref).copy()
-            return self._dense_stiffness(
-                lambda R: self.sampled.tangent(self._all(alpha), R, ref))
+            A = self._all(alpha)
+            if self.sparse is not None:
+                return self._sparse_stiffness(
+                    A, self.sampled.sparse_tangent(A, ref))
+
+            def reduce(R):
+                self.sampled.tangent(A, R, ref)
+                if self.shell is not None:
+                    self.shell.add_hessian(A, R)
+                if self.contact is not None:
+                    R += self.contact.hessian(A).toarray()
+            return self._dense_stiffness(reduce)
         x = self.full_state(alpha, self.eps)
         ref = None if xref is None else self.full_state(xref, self.eps_ref)
         if self.dense is not None:
+            values = self.full.stiffness_values(x, ref)
+            if self.sparse is not None:         # the shell's, on a large volume
+                N = 3 * self.embedding.volume.size
+                R = self.dense(values, np.zeros((N, N)))
+                return self._sparse_stiffness(self._all(alpha), R)
+
             def reduce(R):
-                self.dense(self.full.stiffness_values(x, ref), R)
+                self.dense(values, R)
                 if self.shell is not None:
                     self.shell.add_hessian(self._all(alpha), R)
             return self._dense_stiffness(reduce)
@@ -461,6 +588,22 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 self.K.setBlockSize(3)
             else:
                 K.PtAP(self.embedding.Gamma, self.K)
+        return self.K
+
+    def _sparse_stiffness(self, A, yarns):
+        """Γᵀ K Γ on the fixed sparse pattern (``SparseTangent``): the yarn
+        elements' part ``yarns`` (scipy sparse, or dense), the shell's and
+        the contact set's added, every rank's summed."""
+        T = self.sparse
+        with EV_PTAP:
+            T.zero()
+            (T.add_dense if isinstance(yarns, np.ndarray) else T.add)(yarns)
+            if self.shell is not None:
+                for part in self.shell.hessian_parts(A):
+                    T.add(part)
+            if self.contact is not None:
+                T.add(self.contact.hessian(A))
+            self.K = T.assemble()
         return self.K
 
     def _dense_stiffness(self, reduce):
@@ -499,6 +642,9 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         if self.sampled is not None or self.shell is not None:
             self.gather.destroy()
             self.alpha_all.destroy()
+        if self.sparse is not None:
+            self.sparse.destroy()
+            self.K = None
         for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps,
                   self.eps_ref):
             if A is not None:

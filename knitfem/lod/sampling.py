@@ -94,6 +94,7 @@ class SampledElements:
             self.rows_t = np.ascontiguousarray(self.rows.T)
         else:
             self.rows, self.rows_t = self.G, self.G.T.tocsr()
+        self.G3 = sparse.kron(self.G, sparse.identity(3), format="csr")
         pattern = ElementPattern(self.sub.conn, 0, len(pts))
         self.indptr3, self.indices3, (slot3,) = pattern.blocks3()
         self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
@@ -115,17 +116,29 @@ class SampledElements:
         self.kernels.add_gradient(self.points_of(alpha), g, -1.0)
         out += self.rows_t @ g
 
+    def _values(self, alpha, alpha_ref):
+        """The values of Σ_{e∈S} ξ_e ∇²E_e at the points of S (their pattern
+        ``indptr3``, ``indices3``)."""
+        ref = None if alpha_ref is None else self.points_of(alpha_ref)
+        self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values, ref)
+        return self.values
+
     def tangent(self, alpha, out, alpha_ref=None):
         """out (3 nvolume, 3 nvolume) = Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e (with
         ``alpha_ref``, its axial force linearised from that state: MIP)."""
-        ref = None if alpha_ref is None else self.points_of(alpha_ref)
-        self.kernels.hessian_values(self.points_of(alpha), self.slot3, self.values, ref)
+        values = self._values(alpha, alpha_ref)
         if self.grouped is not None:
-            return self.grouped(self.values, out)
-        G = sparse.kron(self.G, sparse.identity(3), format="csr")
-        K = sparse.csr_matrix((self.values, self.indices3, self.indptr3))
-        out[:] = (G.T @ K @ G).toarray()
+            return self.grouped(values, out)
+        out[:] = self.sparse_tangent(alpha, alpha_ref, values).toarray()
         return out
+
+    def sparse_tangent(self, alpha, alpha_ref=None, values=None):
+        """Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e as a scipy sparse matrix, Γ_Sᵀ K_S Γ_S."""
+        if values is None:
+            values = self._values(alpha, alpha_ref)
+        n3 = self.G3.shape[0]
+        K = sparse.csr_matrix((values, self.indices3, self.indptr3), shape=(n3, n3))
+        return self.G3.T @ (K @ self.G3)
 
     def move(self, dalpha):
         """max |Γ̃_p δα| over the points of S: how far an update moves them."""

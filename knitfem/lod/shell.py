@@ -58,36 +58,47 @@ class ShellStretch:
     (``FullModel(stretch=False)``). α is given as every volume control
     point, (n, 3)."""
 
-    def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH):
+    def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH, per_patch=None):
         vol, el = embedding.volume, full.elements
         cols, vals = shell_rows(vol, embedding.params, el)
-        self.D = sparse.csr_matrix((vals.ravel(), cols.ravel(),
-                                    np.arange(0, cols.size + 1, cols.shape[1])),
-                                   shape=(len(cols), vol.size))
-        t = self.D @ vol.flat
-        self.L2 = np.einsum("qi,qi->q", t, t)
-        W = np.tile(el.weights, el.ne) * np.sqrt(self.L2)
+        t = np.einsum("qk,qki->qi", vals, vol.flat[cols])
+        L2 = np.einsum("qi,qi->q", t, t)
+        W = np.tile(el.weights, el.ne) * np.sqrt(L2)
         self.EA = full.material.EA
         lay = full.layout
         f, k = full.fabric.segments(lay.yarn_start, lay.yarn_end)
         nwin = -(-full.fabric.yarn_nseg[lay.yarn_start:lay.yarn_end] // window)
         first = np.concatenate([[0], np.cumsum(nwin)])[f - lay.yarn_start]
-        self.win = np.repeat(first + k // window, len(el.weights))
-        nwin = self.win.max() + 1 if el.ne else 0
-        self.L = np.bincount(self.win, W, minlength=nwin)            # L_w
+        win = np.repeat(first + k // window, len(el.weights))
+        self.windows = int(win.max()) + 1 if el.ne else 0           # of the rank
+        L = np.bincount(win, W, minlength=self.windows)              # L_w
+        keep, xi = np.arange(self.windows), np.ones(self.windows)
+        if per_patch is not None and el.ne:
+            keep, xi = stratified(patch_of(cols, win, self.windows), per_patch)
+        kept = np.full(self.windows, -1)
+        kept[keep] = np.arange(len(keep))
+        q = np.flatnonzero(kept[win] >= 0)
+        cols, vals, self.L2, W = cols[q], vals[q], L2[q], W[q]
+        self.win, self.L, self.xi = kept[win[q]], L[keep], xi
+        # D's own copies: scipy sorts a row's columns (a periodic volume's
+        # wrap round) in place, which must not reorder ``vals``
+        self.D = sparse.csr_matrix((vals.ravel().copy(), cols.ravel().copy(),
+                                    np.arange(0, cols.size + 1, cols.shape[1])),
+                                   shape=(len(cols), vol.size))
         self.share = W / self.L[self.win]                            # W_q / L_w
-        mean = sparse.csc_matrix((self.share / self.L2, (self.win, np.arange(len(W)))),
-                                 shape=(nwin, len(W)))  # ∂ē_w/∂e_q / L_q²
-        # the points over each patch of V: their rows of D share 32 columns
+        self.cols, self.vals = cols, vals
+        # the points over each patch of V share its 32 columns: their rows
+        # of D stacked a patch at a time, padded with zero rows
         keys, patch = np.unique(cols, axis=0, return_inverse=True)
         patch = patch.ravel()
-        self.patches = []
-        for k, key in enumerate(keys):
-            rows = np.flatnonzero(patch == k)
-            touched = np.unique(self.win[rows])                  # their windows
-            dofs = (3 * key[:, None] + np.arange(3)).ravel()
-            self.patches.append((rows, key, vals[rows], touched, dofs,
-                                 mean[touched][:, rows].tocsr()))
+        order = np.argsort(patch, kind="stable")
+        count = np.bincount(patch, minlength=len(keys))
+        slot = np.arange(len(patch)) - np.repeat(np.cumsum(count) - count, count)
+        self.keys = keys
+        self.stack = np.zeros((len(keys), count.max(initial=0), cols.shape[1]))
+        self.stack[patch[order], slot] = vals[order]
+        self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
+        self.where = (patch[order], slot, order)
 
     def _strain(self, A):
         """t_q (npts, 3) and ē_w (nwin,)."""
@@ -96,35 +107,101 @@ class ShellStretch:
         return t, np.bincount(self.win, self.share * e, minlength=len(self.L))
 
     def energy(self, A):
-        """E_s = ½ EA Σ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
+        """E_s = ½ EA Σ_w ξ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
         _, ebar = self._strain(A)
-        return 0.5 * self.EA * float(np.sum(self.L * ebar**2))
+        return 0.5 * self.EA * float(np.sum(self.xi * self.L * ebar**2))
 
     def _forces(self, A):
-        """t_q and f_q = EA L_w ē_w W_q / (L_w L_q²) at every point."""
+        """t_q and f_q = EA ξ_w L_w ē_w W_q / (L_w L_q²) at every point."""
         t, ebar = self._strain(A)
-        return t, self.EA * (self.L * ebar)[self.win] * self.share / self.L2
+        return t, self.EA * (self.xi * self.L * ebar)[self.win] * self.share / self.L2
 
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
         t, f = self._forces(A)
         out += self.D.T @ (scale * f[:, None] * t)
 
-    def add_hessian(self, A, out):
-        """out (3n, 3n) += ∂²E_s/∂α², α interleaved (3c + i): the points'
-        Σ_q f_q D_qᵀ D_q ⊗ I₃, a patch at a time, and Jᵀ diag(EA L) J."""
+    def hessian_parts(self, A):
+        """∂²E_s/∂α² (3n × 3n) as two scipy matrices whose sum it is, α
+        interleaved (3c + i): the points' Σ_q f_q D_qᵀ D_q ⊗ I₃ from the
+        patches' stacked rows (COO, its 3 × 3 blocks' diagonals), and
+        Jᵀ diag(EA ξ L) J, J_w = Σ_{q∈w} W_q/(L_w L_q²) D_qᵀ t_q (J on a
+        pattern laid out at the first call)."""
         t, f = self._forces(A)
         n = self.D.shape[1]
-        S = np.zeros((n, n))
-        J = np.zeros((len(self.L), 3 * n))
-        for rows, key, Dp, touched, dofs, mean in self.patches:
-            S[np.ix_(key, key)] += Dp.T @ (Dp * f[rows, None])
-            Dt = (Dp[:, :, None] * t[rows, None, :]).reshape(len(rows), -1)
-            J[np.ix_(touched, dofs)] += mean @ Dt
-        H = out.reshape(n, 3, n, 3)
-        for i in range(3):
-            H[:, i, :, i] += S
-        out += J.T @ (J * (self.EA * self.L)[:, None])
+        p, slot, order = self.where
+        fs = np.zeros(self.stack.shape[:2])
+        fs[p, slot] = f[order]
+        # a GEMM a patch (numpy's stacked matmul does not call BLAS)
+        blocks = np.stack([a @ b for a, b in zip(self.stack_t, self.stack * fs[..., None])])
+        k, c = self.keys.shape[1], np.arange(3)
+        rows = (3 * np.repeat(self.keys, k, axis=1)[..., None] + c).ravel()
+        cols = (3 * np.tile(self.keys, k)[..., None] + c).ravel()
+        S = sparse.coo_matrix((np.repeat(blocks.ravel(), 3), (rows, cols)),
+                              shape=(3 * n, 3 * n))
+        Jv = (self.share / self.L2)[:, None, None] * self.vals[:, :, None] * t[:, None, :]
+        if getattr(self, "J", None) is None:
+            J = sparse.csr_matrix(
+                (np.arange(1, Jv.size + 1, dtype=float),
+                 (np.repeat(self.win, Jv[0].size),
+                  (3 * self.cols[:, :, None] + c).ravel())), shape=(len(self.L), 3 * n))
+            J.sum_duplicates()
+            J.sort_indices()
+            self.J = sparse.csr_matrix((np.zeros(J.nnz), J.indices, J.indptr),
+                                       shape=J.shape)
+            self.jpos = np.zeros(Jv.size, dtype=np.int64)       # summed where they meet
+            coo = sparse.coo_matrix((np.arange(Jv.size), (np.repeat(self.win, Jv[0].size),
+                                    (3 * self.cols[:, :, None] + c).ravel())), shape=J.shape)
+            keys = coo.row.astype(np.int64) * J.shape[1] + coo.col
+            jkeys = np.repeat(np.arange(J.shape[0]), np.diff(J.indptr)) * J.shape[1] \
+                + J.indices
+            self.jpos[coo.data] = np.searchsorted(jkeys, keys)
+        self.J.data[:] = np.bincount(self.jpos, Jv.ravel(), minlength=self.J.nnz)
+        return S, self.J.T @ sparse.diags(self.EA * self.xi * self.L) @ self.J
+
+    def hessian(self, A):
+        """∂²E_s/∂α² (3n × 3n, scipy CSR): the sum of ``hessian_parts``."""
+        S, JJ = self.hessian_parts(A)
+        return S.tocsr() + JJ
+
+    def pattern(self):
+        """The scalar pattern (n × n, scipy) of ``hessian``'s couplings: the
+        volume control points that a stitch's points reach, all to all."""
+        reach = abs(sparse.csr_matrix((np.ones(len(self.win)), (self.win,
+                                       np.arange(len(self.win)))),
+                                      shape=(len(self.L), len(self.win)))) @ abs(self.D)
+        reach.data[:] = 1.0
+        return reach.T @ reach
+
+    def add_hessian(self, A, out):
+        """out (3n, 3n) += ∂²E_s/∂α² (``hessian``)."""
+        out += self.hessian(A).toarray()
+
+
+def patch_of(cols, win, nwin):
+    """The patch of V of each window: that of its first Gauss point (rows
+    ``cols`` of D, the window of each point ``win``), as an index."""
+    first = np.full(nwin, len(win))
+    np.minimum.at(first, win, np.arange(len(win)))
+    _, patch = np.unique(cols[first], axis=0, return_inverse=True)
+    return patch.ravel()
+
+
+def stratified(patch, per_patch):
+    """(windows, weights ξ): in every patch, ``per_patch`` of its windows
+    spread evenly through it (all when it has fewer), each weighted by the
+    windows of the patch it stands for: Σ_{w∈S} ξ_w = the window count."""
+    order = np.argsort(patch, kind="stable")
+    start = np.searchsorted(patch[order], np.arange(patch.max() + 2))
+    keep, xi = [], []
+    for a, b in zip(start[:-1], start[1:]):
+        m = min(per_patch, b - a)
+        if m:
+            keep.append(order[a + (np.arange(m) * (b - a)) // m])
+            xi.append(np.full(m, (b - a) / m))
+    keep, xi = np.concatenate(keep), np.concatenate(xi)
+    order = np.argsort(keep)
+    return keep[order], xi[order]
 
 
 def shell_rows(volume, params, elements):

@@ -1,0 +1,168 @@
+"""The reduced model's contact with bodies on an active set of yarn elements.
+
+The barrier E_c and the lagged friction D against bodies (``colliders``)
+act only on yarn elements within the gap ĥ of a body, so the reduced model
+evaluates them, its forces Γ_Aᵀ ∇(E_c + D) and its tangent
+Γ_Aᵀ ∇²(E_c + D) Γ_A, on an active set A of elements near a body: a Newton
+iteration costs what the contact region does, not the yarns.
+
+Broad phase. A yarn point is a convex combination of its element's four
+control points p_a, so φ(x) ≥ min_a φ(p_a) − d_e, d_e the largest distance
+between two of them (φ is 1-Lipschitz). At the start of a step, from the
+control points x⁰ = Γ̃ α⁰ and the bodies at t₀, an element is active when
+
+    min_a φ(p_a) − d_e − r < ĥ + m,   m = reach of the bodies over the step + a,
+
+a the allowance for the yarns' own move (twice the last step's largest,
+at least 2 r). The set is formed again when the step's end time changes
+(a retried step) and at every step; after a step, an element left out
+whose bound at the end state comes within the gap refuses the step
+(``missed``), with the allowance doubled, and the step is solved again on
+the larger set. Friction is lagged on the set at the step's start.
+"""
+
+import numpy as np
+from scipy import sparse
+
+from knitfem.contact.colliders import Barrier
+from knitfem.model.assembly import ElementPattern
+
+__all__ = ["ActiveContact"]
+
+
+class ElementView:
+    """Some yarn elements ``e`` of ``elements`` over their own control points
+    (``points_index``, rows of the rank's), as ``colliders.Barrier`` uses
+    them: the basis B, the weights W, the connectivity and ``points``."""
+
+    def __init__(self, elements, e):
+        self.points_index, local = np.unique(elements.conn[e], return_inverse=True)
+        self.conn = local.reshape(-1, 4)
+        self.B, self.W = elements.B, elements.W[e]
+        self.ne = len(e)
+        self.sampler = sparse.csr_matrix(
+            (np.broadcast_to(self.B, (self.ne, len(self.B), 4)).ravel(),
+             (np.repeat(np.arange(self.ne * len(self.B)), 4),
+              np.repeat(self.conn, len(self.B), axis=0).ravel())),
+            shape=(self.ne * len(self.B), len(self.points_index)))
+
+    def points(self, x):
+        """Curve points at every quadrature point, (ne, nq, 3)."""
+        return (self.sampler @ np.asarray(x)).reshape(self.ne, len(self.B), 3)
+
+
+class ActiveContact:
+    """E_c + D of a ``FullModel``'s yarns (this rank's) against its bodies,
+    embedded by ``embedding``, on an active set of elements (module
+    docstring). α is given as every volume control point, (n, 3)."""
+
+    def __init__(self, full, embedding):
+        self.full, self.el = full, full.elements
+        whole = full.barrier
+        self.bodies, self.radius = whole.bodies, whole.radius
+        self.gap, self.friction = whole.gap, whole.mu
+        self.weight = full.material.rho * full.material.gravity
+        n = embedding.volume.size
+        self.G = sparse.csr_matrix(
+            (embedding.vals.ravel(), embedding.cols.ravel(),
+             np.arange(0, embedding.cols.size + 1, embedding.cols.shape[1])),
+            shape=(len(embedding.cols), n))                         # Γ̃ (rank's)
+        self.allowance, self.step_h = 2 * self.radius, None
+        self.active = np.zeros(0, dtype=int)
+        self.barrier, self.start, self.window, self.refusals = None, None, None, 0
+        self._use(np.zeros(0, dtype=int))
+
+    # -- the set ---------------------------------------------------------------
+    def _bound(self, X):
+        """min_a φ(p_a) − d_e − r of every element at control points X."""
+        phi = np.min([body.phi(X) for body in self.bodies], axis=0)
+        P = X[self.el.conn]                                          # (ne, 4, 3)
+        d = np.max(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=(1, 2))
+        return phi[self.el.conn].min(axis=1) - d - self.radius
+
+    def _use(self, e):
+        """The barrier on the elements e (sorted)."""
+        self.active = e
+        self.view = ElementView(self.el, e)
+        self.Ga = self.G[self.view.points_index]
+        self.Ga3 = sparse.kron(self.Ga, sparse.identity(3), format="csr")
+        pattern = ElementPattern(self.view.conn, 0, len(self.view.points_index))
+        self.indptr3, self.indices3, (slot3,) = pattern.blocks3()
+        self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
+        self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
+                               gap=self.gap / self.radius, friction=self.friction)
+
+    def begin(self, alpha, t0):
+        """A step starts from α⁰ = ``alpha`` at t₀: the set is formed again at
+        its first ``move``."""
+        self.start = (np.array(alpha), t0)
+        self.window, self.step_h = None, None
+
+    def move(self, t0, t1):
+        """The step (or a part of it) runs from t0 to t1: the bodies posed at
+        t1; the set formed again for a new step end, and friction lagged on
+        it from the step's start."""
+        alpha0, ts = self.start
+        if self.window is None or self.window[1] != t1:
+            self.barrier.at(ts)
+            X0 = self.G @ alpha0
+            reach = self.barrier.reach(ts, max(t1, ts), X0) if self.barrier.moves else 0.0
+            bound = self._bound(X0)
+            e = np.flatnonzero(bound < self.gap + reach + self.allowance)
+            if not np.array_equal(e, self.active):
+                self._use(e)
+            self.barrier.lag(self.Ga @ alpha0, ts)
+            self.step_h = self.step_h or t1 - t0        # the step as first tried
+            self.barrier.set_step(self.step_h)
+            self.window = (t0, t1)
+        self.barrier.step_to(t0, t1)
+
+    def missed(self, alpha0, alpha1):
+        """After a step from α⁰ to α¹: whether an element outside the set may
+        have come within the gap (its bound at α¹, the bodies where they
+        are now); the allowance is then doubled and the set formed again at
+        the next ``move``."""
+        bound = self._bound(self.G @ alpha1)
+        bound[self.active] = np.inf
+        move = np.abs(self.G @ (alpha1 - alpha0)).max(initial=0.0)
+        if bound.min(initial=np.inf) >= self.gap:
+            self.allowance = max(2 * self.radius, 2 * move)
+            return False
+        self.allowance = 2 * max(self.allowance, move)
+        self.window, self.refusals = None, self.refusals + 1
+        return True
+
+    # -- energy, forces, tangent ---------------------------------------------
+    def _x(self, alpha):
+        return self.Ga @ alpha
+
+    def energy(self, alpha):
+        """E_c + D on the set."""
+        x = self._x(alpha)
+        return self.barrier.energy(x) + self.barrier.friction_potential(x)
+
+    def add_forces(self, alpha, out):
+        """out (n, 3) += −Γ_Aᵀ ∇(E_c + D)."""
+        g = np.zeros((len(self.view.points_index), 3))
+        self.barrier.add_gradient(self._x(alpha), g, -1.0)
+        out += self.Ga.T @ g
+
+    def hessian(self, alpha):
+        """Γ_Aᵀ ∇²(E_c + D) Γ_A, a scipy sparse matrix (3n × 3n)."""
+        values = np.zeros(len(self.indices3))
+        self.barrier.add_hessian(self._x(alpha), self.slot3, values)
+        n3 = self.Ga3.shape[0]
+        K = sparse.csr_matrix((values, self.indices3, self.indptr3), shape=(n3, n3))
+        K.eliminate_zeros()            # the set's elements outside the gap
+        return self.Ga3.T @ (K @ self.Ga3)
+
+    def step_limit(self, alpha, dalpha):
+        """``Barrier.step_limit`` on the set's points."""
+        return self.barrier.step_limit(self._x(alpha), self._x(dalpha))
+
+    def swept_depth(self, alpha0, alpha1):
+        """``Barrier.swept_depth`` on the set's points."""
+        return self.barrier.swept_depth(self._x(alpha0), self._x(alpha1))
+
+    def min_distance(self, alpha):
+        return self.barrier.min_distance(self._x(alpha))
