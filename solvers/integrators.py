@@ -38,10 +38,14 @@ __all__ = ["SimulationError", "SymplecticEuler", "NewtonStepper", "BackwardEuler
 
 EV_SOLVE = PETSc.Log.Event("knitSaddleSolve")
 EV_FACTOR = PETSc.Log.Event("knitFactor")
-# a Newton solve of a step, failed ones too (PETSc's own events of a solve
-# that fails inside MUMPS are never ended, so they miss its time)
+# a Newton solve of a step from its filtered prediction, failed ones too
+# (PETSc's own events of a solve that fails inside MUMPS are never ended, so
+# they miss its time)
 EV_NEWTON = PETSc.Log.Event("knitNewtonSolve")
 EV_CONTROL = PETSc.Log.Event("knitStepControl")
+# a step's lagged quantities and, where the yarn contact's pairs moved, its
+# tangent pattern made again (``begin_step``, ``relayout``)
+EV_BEGIN = PETSc.Log.Event("knitBeginStep")
 
 
 class SimulationError(RuntimeError):
@@ -496,24 +500,24 @@ class NewtonStepper:
 
     def _newton(self, h, stats):
         """One Newton solve of the step h from the predictor."""
-        self.predict(h, self.tmp)
-        if self.filter is not None:
-            self._filter_prediction()
-            self.missing = self.system.tangent_missed()
-        self.xn.copy(self.xref)
-        zu, zl = self.saddle.split(self.z)
-        zu[:] = self.tmp.getArray(readonly=True)
-        zl[:] = self.lam.getArray(readonly=True) * self.sigma
-        try:
-            with EV_NEWTON:
+        with EV_NEWTON:
+            self.predict(h, self.tmp)
+            if self.filter is not None:
+                self._filter_prediction()
+                self.missing = self.system.tangent_missed()
+            self.xn.copy(self.xref)
+            zu, zl = self.saddle.split(self.z)
+            zu[:] = self.tmp.getArray(readonly=True)
+            zl[:] = self.lam.getArray(readonly=True) * self.sigma
+            try:
                 solve_saddle(lambda: self.snes.solve(None, self.z),
                              self.snes.getKSP())
-        except SolverFailure as err:
-            stats["linear_failures"] += 1
-            raise SimulationError(f"{err}, h = {h:.3g} s", err.curable) from None
-        finally:
-            stats["newton"] += self.snes.getIterationNumber()
-            stats["ksp"] += self.snes.getLinearSolveIterations()
+            except SolverFailure as err:
+                stats["linear_failures"] += 1
+                raise SimulationError(f"{err}, h = {h:.3g} s", err.curable) from None
+            finally:
+                stats["newton"] += self.snes.getIterationNumber()
+                stats["ksp"] += self.snes.getLinearSolveIterations()
         halt_if_requested()
 
     def _pattern_left(self):
@@ -559,8 +563,9 @@ class NewtonStepper:
             self.start(x, v)
             self.history.start(x.getArray(readonly=True))
         stats = {"newton": 0, "ksp": 0, "rejected": 0, "linear_failures": 0}
-        if self.system.begin_step(x, t):        # lagged quantities (friction)
-            self.relayout(x)                    # a new tangent pattern
+        with EV_BEGIN:
+            if self.system.begin_step(x, t):    # lagged quantities (friction)
+                self.relayout(x)                # a new tangent pattern
         self.t_n = t                            # where the next (part) step starts
         c = self.control
         while True:

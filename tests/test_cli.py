@@ -207,9 +207,11 @@ def test_run_writes_output_and_log_view_has_a_stage_per_phase(tmp_path):
 def test_retries_get_progress_lines_and_log_view_accounts_for_the_stepping(
         tmp_path):
     """Under -knit_slow_step 0 every retried step says so while it runs, and
-    the stepping stage's time is in knitNewtonSolve (failed solves too) and
-    knitStepControl: 98.6 % of it measured on this 3x3 run (the rest is
-    Python between them)."""
+    the stepping stage's time is in knitNewtonSolve (failed solves too, and
+    the prediction filtered at the yarn contact), knitStepControl and
+    knitBeginStep (the yarn contact's pairs and pattern between steps):
+    99.7 % of it measured on this 3x3 run (the rest is Python between
+    them)."""
     p = knitfem("run", "-knit_rows", "3", "-knit_cols", "3", "-knit_t_end", "0.05",
                 "-knit_slow_step", "0", "-knit_snapshots", "", "-o", str(tmp_path),
                 "-log_view", f":{tmp_path / 'log.csv'}:ascii_csv")
@@ -221,9 +223,9 @@ def test_retries_get_progress_lines_and_log_view_accounts_for_the_stepping(
     stage = {r[1]: float(r[4]) for r in (
         line.split(",") for line in (tmp_path / "log.csv").read_text().splitlines())
         if r[0] == "Time stepping"}
-    ours = stage["knitNewtonSolve"] + stage["knitStepControl"]
+    ours = stage["knitNewtonSolve"] + stage["knitStepControl"] + stage["knitBeginStep"]
     assert stage["SNESSolve"] <= stage["knitNewtonSolve"]
-    assert ours > 0.8 * stage["summary"]
+    assert ours > 0.95 * stage["summary"]
 
 
 def test_usage_lists_commands_with_an_example_each():
