@@ -20,7 +20,7 @@ import numpy as np
 
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
-           "BodySeries", "TubeFrames", "TUBE_FORMATS", "tube_mesh",
+           "BodySeries", "TubeFrames", "TUBE_FORMATS", "tube_surfaces",
            "draw", "draw_panels", "animate", "VIEWS"]
 
 def _pyplot():
@@ -90,7 +90,7 @@ def write_bodies(path, bodies, size):
 TUBE_FORMATS = ("ply", "obj", "off")
 
 
-def tube_mesh(P, closed, radius, file_format="ply"):
+def tube_surfaces(P, closed, radius, file_format="ply"):
     """The yarns P (``Curves``) as a meshio triangle mesh of tubes of radius
     ``radius`` around the centreline samples of the time series (``closed``
     the fabric's closed yarns; ``yarn.tubes``). PLY carries the point data
@@ -114,7 +114,7 @@ def tube_mesh(P, closed, radius, file_format="ply"):
 
 class TubeFrames:
     """The yarns' tube meshes, one file a frame, ``<dir>/<step>.<format>``
-    (``tube_mesh``; call on rank 0). Frames an earlier run left are removed,
+    (``tube_surfaces``; call on rank 0). Frames an earlier run left are removed,
     but for those up to step ``keep`` (a restart into the same directory)."""
 
     def __init__(self, dir, file_format, closed, radius, keep=None):
@@ -137,7 +137,7 @@ class TubeFrames:
         """Frame ``step``: the yarns P (``Curves``)."""
         import meshio
 
-        mesh = tube_mesh(P, self.closed, self.radius, self.format)
+        mesh = tube_surfaces(P, self.closed, self.radius, self.format)
         atomic_write(os.path.join(self.dir, f"{step:08d}.{self.format}"),
                      lambda tmp: meshio.write(tmp, mesh, file_format=self.format))
 

@@ -89,9 +89,9 @@ def tube_mesh(samples, closed, radius, sides=SIDES):
         step = np.linalg.norm(x[nxt] - x[ring], axis=1)
         arc = _within(step, first) - step        # arclength from the first ring
         length = arc[last] + step[last]
-        held = theta[last] + turn(last, first)
-        held = held - 2 * np.pi * np.round(held / (2 * np.pi))
-        theta = theta - np.where(wrap, held * arc / length, 0.0)
+        holonomy = theta[last] + turn(last, first)
+        holonomy -= 2 * np.pi * np.round(holonomy / (2 * np.pi))
+        theta = theta - np.where(wrap, holonomy * arc / length, 0.0)
     u = np.cos(theta)[:, None] * a + np.sin(theta)[:, None] * np.cross(t, a)
     w = np.cross(t, u)
 
