@@ -174,6 +174,23 @@ def test_meshio_reads_the_frames_back(tmp_path):
     assert len({tuple(c) for c in yarn_colours(P.nyarn)}) == P.nyarn
 
 
+def test_frames_after_a_restart_step_are_removed(tmp_path):
+    """A restart into the directory keeps the frames up to its checkpoint's
+    step and removes the later ones and temporaries; a new series (or a run
+    without tube meshes) removes every frame, of any format."""
+    fab = jersey(2, 2)
+    P = fab.curves(fab.X)
+    d = str(tmp_path / "tubes")
+    frames = io.TubeFrames(d, "ply", fab.closed, fab.radius)
+    for step in (0, 10, 20):
+        frames.write(step, P)
+    (tmp_path / "tubes" / ".00000030.host.1.tmp.ply").write_text("")
+    io.TubeFrames(d, "off", fab.closed, fab.radius, keep=10).write(11, P)
+    assert sorted(os.listdir(d)) == ["00000000.ply", "00000010.ply", "00000011.off"]
+    io.TubeFrames.remove(d)
+    assert os.listdir(d) == []
+
+
 def test_run_writes_one_tube_mesh_a_frame_around_the_series(tmp_path):
     """The command docs/guide/output.md shows, run as written: -knit_tube_mesh
     ply writes one PLY file per frame of the XDMF series, named by its step,
