@@ -220,6 +220,39 @@ def test_run_writes_one_tube_mesh_a_frame_around_the_series(tmp_path):
     assert not os.path.exists(out / "tubes") or not os.listdir(out / "tubes")
 
 
+def test_a_restart_continues_the_tube_frames(tmp_path):
+    """A run continued from its earlier checkpoint into its own directory
+    keeps the tube frames up to the checkpoint's step (the same files) and
+    writes the later ones again: one tube frame for every frame of the
+    series, each around it."""
+    out = tmp_path / "r"
+    run = ["knitfem", "run", "-knit_rows", "2", "-knit_cols", "2", "-knit_snapshots",
+           "", "-knit_integrator", "implicit", "-knit_dt", "1e-3", "-knit_t_end",
+           "0.01", "-knit_output_every", "1", "-knit_checkpoint_every", "5",
+           "-knit_tube_mesh", "ply", "-o", str(out), "-skip_petscrc"]
+    p = subprocess.run(run, capture_output=True, text=True, env=environment(),
+                       timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    with h5py.File(out / "checkpoint.prev.h5") as f:
+        step = int(f.attrs["step"])
+    before = {n: os.stat(out / "tubes" / n).st_mtime_ns
+              for n in os.listdir(out / "tubes")}
+    p = subprocess.run(run + ["-knit_restart", str(out / "checkpoint.prev.h5")],
+                       capture_output=True, text=True, env=environment(), timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    after = {n: os.stat(out / "tubes" / n).st_mtime_ns
+             for n in os.listdir(out / "tubes")}
+    assert 0 < step < 10 and sorted(after) == sorted(before)
+    assert all((after[n] == before[n]) == (int(n[:8]) <= step) for n in after)
+    frames = sorted(os.listdir(out / "yarns"))
+    assert sorted(after) == [n.replace(".h5", ".ply") for n in frames if n[0] == "0"]
+    for name in after:
+        with h5py.File(out / "yarns" / name.replace(".ply", ".h5")) as f:
+            centres = f["geometry"][...]
+        ring = meshio.read(out / "tubes" / name).points.reshape(-1, K, 3).mean(axis=1)
+        assert np.abs(ring - centres).max() < 1e-17
+
+
 @pytest.mark.skipif(shutil.which("mpirun") is None, reason="no mpirun")
 def test_two_ranks_write_the_frames_of_one(tmp_path):
     """Under mpirun -n 2 rank 0 writes the gathered yarns: the same files,
