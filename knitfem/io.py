@@ -5,7 +5,8 @@ Centrelines are the splines sampled ``SAMPLES`` times a segment, written as
 radius: By Scalar"), ``yarn`` and ``course`` (the course a point knits, 0
 the first knitted course); yarns have their own lengths (``curves.Curves``);
 time series go to XDMF + HDF5, one file a
-frame. Every file is written under a temporary name and renamed into place.
+frame, and, for renderers, the yarns as tube meshes (PLY, OBJ or OFF) one
+file a frame. Every file is written under a temporary name and renamed into place.
 """
 
 import contextlib
@@ -19,7 +20,7 @@ import numpy as np
 
 
 __all__ = ["centrelines", "write_centrelines", "atomic_write", "CentrelineSeries",
-           "BodySeries",
+           "BodySeries", "TubeFrames", "TUBE_FORMATS", "tube_surfaces",
            "draw", "draw_panels", "animate", "VIEWS"]
 
 def _pyplot():
@@ -84,6 +85,61 @@ def write_bodies(path, bodies, size):
     pts, cells, data = _body_arrays(bodies, size)
     mesh = meshio.Mesh(pts, cells, point_data=data)
     atomic_write(path, lambda tmp: meshio.write(tmp, mesh, file_format="vtu"))
+
+
+TUBE_FORMATS = ("ply", "obj", "off")
+
+
+def tube_surfaces(P, closed, radius, file_format="ply"):
+    """The yarns P (``Curves``) as a meshio triangle mesh of tubes of radius
+    ``radius`` around the centreline samples of the time series (``closed``
+    the fabric's closed yarns; ``yarn.tubes``). PLY carries the point data
+    ``yarn`` (int32) and ``red``, ``green``, ``blue`` (uint8, one colour a
+    yarn: Blender's vertex colours); OBJ the normals of the swept circles
+    (smooth shading); OFF the geometry only."""
+    import meshio
+
+    from knitfem.yarn.tubes import tube_mesh as sweep, yarn_colours
+
+    m = sweep(centrelines(P), closed, radius)
+    data = {}
+    if file_format == "ply":
+        rgb = yarn_colours(P.nyarn)[m.yarn]
+        data = dict(yarn=m.yarn.astype(np.int32), red=rgb[:, 0], green=rgb[:, 1],
+                    blue=rgb[:, 2])
+    elif file_format == "obj":
+        data = {"obj:vn": m.normals}
+    return meshio.Mesh(m.points, [("triangle", m.triangles)], point_data=data)
+
+
+class TubeFrames:
+    """The yarns' tube meshes, one file a frame, ``<dir>/<step>.<format>``
+    (``tube_surfaces``; call on rank 0). Frames an earlier run left are removed,
+    but for those up to step ``keep`` (a restart into the same directory)."""
+
+    def __init__(self, dir, file_format, closed, radius, keep=None):
+        self.dir, self.format = dir, file_format
+        self.closed, self.radius = closed, radius
+        os.makedirs(dir, exist_ok=True)
+        self.remove(dir, keep)
+
+    @staticmethod
+    def remove(dir, keep=None):
+        """Remove the frames in ``dir`` after step ``keep`` (None: all) and
+        temporaries (a run without tube meshes: those of an earlier run)."""
+        for name in os.listdir(dir) if os.path.isdir(dir) else ():
+            stem = os.path.splitext(name)[0]
+            if name.startswith(".") or (stem.isdigit() and (keep is None
+                                                           or int(stem) > keep)):
+                os.remove(os.path.join(dir, name))
+
+    def write(self, step, P):
+        """Frame ``step``: the yarns P (``Curves``)."""
+        import meshio
+
+        mesh = tube_surfaces(P, self.closed, self.radius, self.format)
+        atomic_write(os.path.join(self.dir, f"{step:08d}.{self.format}"),
+                     lambda tmp: meshio.write(tmp, mesh, file_format=self.format))
 
 
 def atomic_write(path, write):

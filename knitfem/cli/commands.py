@@ -462,6 +462,7 @@ def run(comm):
 
     from solvers.statics import StaticSolver
 
+    from knitfem.io import TUBE_FORMATS
     from knitfem.lod.adapt import adapt_options, adaptation_from_options
     from knitfem.run.output import CHANGEABLE, OutputDirectory
     from knitfem.run.painter import Painter
@@ -504,6 +505,10 @@ def run(comm):
     snaps = opts.getString("snapshots", "0.4,1,2,3", "times of the PNG snapshots [s]")
     movie = opts.getString("animation", "", "file name of a GIF of every output "
                            "frame, in the output directory (e.g. hanging.gif)")
+    tubes = opts.getChoice("tube_mesh", "none", ("none",) + TUBE_FORMATS,
+                           "every output frame also as a triangle mesh of the "
+                           "yarns' tubes for renderers, DIR/tubes/STEP.FORMAT (PLY: "
+                           "a colour and the index of each yarn)")
     ckpt = opts.getInt("checkpoint_every", 0, "steps between HDF5 checkpoints "
                        "(0: none)", 0)
     restart = opts.getString("restart", "", "continue from this HDF5 checkpoint")
@@ -596,7 +601,8 @@ def run(comm):
                          checkpoint_every=ckpt, view=scene.view, problem=problem,
                          command=sys.argv, adapt=adapt, animation=movie,
                          painter=painter, slow_step=slow,
-                         report=dict(scene.report(), **knitted))
+                         report=dict(scene.report(), **knitted),
+                         tubes="" if tubes == "none" else tubes)
         if restart:
             sim.restart(restart, change)
         if adapt is not None:

@@ -2,6 +2,7 @@
 
     DIR/.knitfem.lock         the run that writes here (host, pid, start time)
     DIR/yarns.xdmf, yarns/    the time series (``io.CentrelineSeries``)
+    DIR/tubes/                its frames as tube meshes (``io.TubeFrames``)
     DIR/checkpoint.h5         the newest checkpoint; checkpoint.prev.h5 the one before
     DIR/summary.json          what the run did
     DIR/*.png, *.gif          snapshots and animation (of this run only)

@@ -89,13 +89,18 @@ class Simulation:
         (``heard``; 0: every retry). More MUMPS workspace always gets one.
     report : dict
         The scene's own entries in the summary (e.g. the sleeve's elbow angle).
+    tubes : str
+        A format of ``io.TUBE_FORMATS``: every output frame also as a
+        triangle mesh of the yarns' tubes, DIR/tubes/<step>.<format> ("":
+        none).
     """
 
     def __init__(self, system, integrator, out=None, scene="", output_every=10,
                  snapshots=(), drift_tol=1e-6, checkpoint_every=0, verbose=True,
                  view="oblique", problem=None, command=None, adapt=None,
                  animation="", energy_growth=0.5, stall_steps=100, painter=None,
-                 series="yarns.xdmf", settled=None, slow_step=5.0, report=None):
+                 series="yarns.xdmf", settled=None, slow_step=5.0, report=None,
+                 tubes=""):
         self.system, self.integrator, self.scene = system, integrator, scene
         self.comm = system.comm
         self.output = out
@@ -120,6 +125,7 @@ class Simulation:
         self.energy = []                 # (t, kinetic, elastic + gravity)
         self.energy_seen = None          # check_energy's summary of them
         self.series, self.series_from = None, None
+        self.tubes, self.tube_frames = tubes, None
         self.restarted_from, self.last_checkpoint = None, None
         self.full = getattr(system, "full", system)
         self.bodies = tuple(self.full.fabric.bodies)
@@ -275,7 +281,15 @@ class Simulation:
                 io.write_bodies(self._path("bodies.vtu"), self.posed(), size)
                 self.body_series = io.BodySeries(self._path("bodies.xdmf"),
                                                  self.posed(), size, keep, note)
+            if self.tubes:                   # for renderers, beside the yarns
+                self.tube_frames = io.TubeFrames(
+                    self._path("tubes"), self.tubes, self.full.fabric.closed,
+                    self.full.fabric.radius, keep)
+            else:
+                io.TubeFrames.remove(self._path("tubes"), keep)
         self.series.write(self.step_count, self.t, P)
+        if self.tube_frames is not None:
+            self.tube_frames.write(self.step_count, P)
         if self.body_series is not None:
             self.body_series.write(self.step_count, self.t, self.posed())
         if self.animation:
@@ -707,7 +721,7 @@ class Simulation:
         try:
             self.write_panels()
         finally:
-            self.series = None
+            self.series = self.tube_frames = None
             if self.painter is not None:         # write_panels did not finish it
                 self.painter.stop()
                 self.painter = None
