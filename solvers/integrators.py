@@ -284,6 +284,8 @@ class NewtonStepper:
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
         # fixed steps, 1e-2 of the local error tolerance under step control
         self.limited = False                # the last update was shortened
+                                            # (a body's step limit, the yarn
+                                            # contact's filter)
         self.snes.setConvergenceTest(self._missing_entries(step_convergence(
             self.saddle, lambda: self.newton_tol / self.kappa, system,
             lambda: self.limited)))
@@ -361,10 +363,13 @@ class NewtonStepper:
 
     def _step_fraction(self, z, y):
         """Newton's update z ← z − y moves ε from ε̂ + κ v by −κ y_v: the
-        fraction of it the system allows (``step_fraction``)."""
+        fraction of it the system allows (``step_fraction``). An update cut
+        short is ``limited``: a short update there is not convergence."""
         nu = self.saddle.nu
         x0 = self.xhat.getArray(readonly=True) + self.kappa * z[:nu]
-        return self.system.step_fraction(x0, x0 - self.kappa * y[:nu])
+        fraction = self.system.step_fraction(x0, x0 - self.kappa * y[:nu])
+        self.limited = fraction < 1.0
+        return fraction
 
     def like(self, system):
         """This integrator, its step control and its settings (the Newton
@@ -439,10 +444,10 @@ class NewtonStepper:
         self._unpack(z)
         self.dxe.getArray()[:] = -self.kappa * self.saddle.split(y)[0]
         tau = self.system.step_limit(self.xe, self.dxe)
-        self.limited = tau < 1.0            # at a body: not converged yet
         if getattr(self.system, "yarn_contact", None) is not None:
             tau = min(tau, self._step_fraction(z.getArray(readonly=True),
                                                y.getArray(readonly=True)))
+        self.limited = tau < 1.0    # at a body or a yarn: not converged yet
         if tau < 1.0:
             y.scale(tau)
 
