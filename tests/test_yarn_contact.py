@@ -219,3 +219,21 @@ def test_option_turns_it_off():
     finally:
         opts.delValue("-knit_yarn_contact")
     assert model_options(KnitOptions()).yarn_contact is True           # on by default
+
+
+def test_an_update_cut_by_the_filter_is_not_convergence():
+    """Newton's update cut short by the yarn contact's filter is ``limited``,
+    so that its small length is not taken for convergence (the convergence
+    test's step criterion); an update the filter lets through is not."""
+    fab = crossing(gap=0.5, hold=True)
+    full = FullModel(COMM, fab, Material(gravity=0.0), yarn_contact=True)
+    integ, _, _ = run(full, BackwardEuler, 1e-3, 1)
+    lo, hi = full.rest_state().getOwnershipRange()
+    through = (pushed(fab, 3.0) - fab.X.reshape(-1, 3)).ravel()[lo:hi]
+    z = np.zeros_like(integ.z.getArray(readonly=True))
+    for scale, cut in ((1.0, True), (0.01, False)):
+        y = np.zeros_like(z)
+        y[:hi - lo] = -scale * through / integ.kappa   # ε moves by −κ y
+        assert (integ._step_fraction(z, y) < 1.0) is cut
+        assert integ.limited is cut
+    full.destroy()
