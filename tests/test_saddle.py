@@ -176,6 +176,29 @@ def test_default_workspace_is_what_the_demo_needs(model):
     saddle.destroy()
 
 
+def test_large_saddle_points_are_ordered_by_pord(model, options, monkeypatch):
+    """From PORD_ROWS rows MUMPS orders by PORD (INFOG(7) = 4), below by its
+    own choice (AMF, 2), a prefix that had PORD forgets it on a small system,
+    and an ordering the user gives is kept at any size."""
+    import solvers.saddle as sd
+
+    def ordering(prefix, rows):
+        monkeypatch.setattr(sd, "PORD_ROWS", rows)
+        saddle = SaddlePoint(jacobian(model, scale=1.01), model.C)
+        ksp = saddle_ksp(saddle, prefix)
+        z, rel = solve(saddle, ksp)
+        used = ksp.getPC().getFactorMatrix().getMumpsInfog(7)
+        for obj in (z, ksp, saddle):
+            obj.destroy()
+        assert rel < 1e-10
+        return used
+
+    n = model.M.getSize()[0] + model.C.getSize()[0]
+    assert (ordering("t_ord_", n), ordering("t_ord_", n + 1)) == (4, 2)
+    options(t_user_ord_mat_mumps_icntl_7=0)
+    assert ordering("t_user_ord_", n) == 0                  # AMD, as asked
+
+
 @pytest.mark.skipif(COMM.size > 1, reason="the 2-rank factorisation of this "
                     "saddle point fits its estimate")
 def test_workspace_retried(model, options):
