@@ -325,23 +325,35 @@ class YarnContact:
         two, one closing in stops short of where it would reach g).
 
         Only the pairs with δ_e + δ_f > (1 − keep)(d − dmin) can stop
-        short of 1: the candidates (``_near``), which hold every pair closer
-        than dmin + d̂ + margin, and the pairs of an edge moving by more than
-        (1 − keep)(d̂ + margin) / 2 (a k-d tree around those alone)."""
+        short of 1: candidates of the Verlet list (``_near``), and pairs
+        beyond it, whose clearance at P0 is at least d̂ + margin + skin
+        less the moves m_e + m_f of their edges since the list was made, so
+        that s_e + s_f > (1 − keep)(d̂ + margin + skin) with
+        s_e = δ_e + (1 − keep) m_e: the pairs of an edge with s_e above half
+        that (a k-d tree around those alone). Those are looked for on the
+        part [0, t] of the path the candidates allow, where they move by t δ
+        (a large predicted move, cut short by a near pair, does not search
+        the whole swatch)."""
         V0 = _fortran(self.samples(P0))
         dV = self.samples(P1) - V0
         dV -= dV.mean(axis=0)
         dv = np.sqrt(np.sum(dV * dV, axis=1))
         de = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
         reach = 2.0 * de.max(initial=0.0) / (1.0 - keep)
-        e, f, d = self._near(V0, self.dmin + min(reach, self.dhat + self.margin))
-        fast = np.flatnonzero(de > 0.5 * (1.0 - keep) * (self.dhat + self.margin))
-        if len(fast):                   # pairs beyond the candidates that may close
-            g, h, dg = self.edges_near(V0, fast, self.dmin + (de[fast].max() + de.max())
-                                        / (1.0 - keep))
-            may = de[g] + de[h] > (1.0 - keep) * (dg - self.dmin)
-            may[may] &= self.edges_may_touch(g[may], h[may])
-            e, f, d = np.append(e, g[may]), np.append(f, h[may]), np.append(d, dg[may])
+        e, f, d = self._near(V0, self.dmin + reach)
+        t = self._advance(V0, dV, de, e, f, d, keep, rounds)
+        # beyond the list: only the path up to t, whose moves are t δ_e
+        fast = np.flatnonzero(t * de + (1.0 - keep) * self.edge_moved > 0.5 * (1.0 - keep)
+                              * (self.dhat + self.margin + self.skin))
+        if t > 0.0 and len(fast):
+            g, h, dg = self.edges_near(V0, fast, t * de / (1.0 - keep))
+            may = self.edges_may_touch(g, h)
+            t = min(t, self._advance(V0, dV, de, g[may], h[may], dg[may], keep, rounds))
+        return t
+
+    def _advance(self, V0, dV, de, e, f, d, keep, rounds):
+        """``step_fraction``'s conservative advancement on the edge pairs
+        (e, f) at distances d at the samples V0, moving by dV."""
         may = de[e] + de[f] > (1.0 - keep) * (d - self.dmin)
         if not may.any():
             return 1.0
@@ -361,19 +373,25 @@ class YarnContact:
             d = segment_distance(x[0], x[1], y[0], y[1])
         return float(np.clip(t.min(), 0.0, 1.0))
 
-    def edges_near(self, V, some, within):
+    def edges_near(self, V, some, slack):
         """Pairs (e, f) of an edge e of ``some`` and any edge f not of its
         neighbourhood along the yarn (``close_edges``' first filter) closer
-        than ``within`` at the samples V, and their distances."""
+        than dmin + slack_e + slack_f at the samples V (``slack`` per edge),
+        and their distances: a k-d tree of the edges' midpoints, the pairs
+        it finds first thinned by the distance bound |m_e − m_f| less the
+        half lengths, then measured."""
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
         close = cKDTree(mid[some]).sparse_distance_matrix(
-            cKDTree(mid), within + 2 * half.max(), output_type="ndarray")
+            cKDTree(mid), self.dmin + slack[some].max() + slack.max() + 2 * half.max(),
+            output_type="ndarray")
         e, f = some[close["i"]], close["j"]
+        within = self.dmin + slack[e] + slack[f]
         keep = self._apart(e, f) & (close["v"] - half[e] - half[f] < within)
-        e, f = e[keep], f[keep]
+        e, f, within = e[keep], f[keep], within[keep]
         d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
-        return e[d < within], f[d < within], d[d < within]
+        near = d < within
+        return e[near], f[near], d[near]
 
     def _apart(self, e, f):
         """Edge pairs on different yarns, or on one yarn at least half a run
