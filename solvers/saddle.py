@@ -53,14 +53,15 @@ WORKSPACE = 200
 pivots: the hanging 7×7 (``make demo``) ran out at 100 at t = 0.27 s of its
 3 s and fits at 200. MUMPS allocates it but touches only what it uses: the
 peak RSS of a step of the 50×100 jersey is the same at 100 and 200 (1.10 GB)."""
-PORD_ROWS = 10000
-"""From this many rows MUMPS orders the saddle point by PORD (ICNTL(7) = 4)
-unless told otherwise; below, its own choice (AMF here: Debian's MUMPS has no
-METIS or SCOTCH). With yarn contact's pairs in the pattern AMF's factors grow
-fast: the full 20×40 jersey's first step (24 060 rows) factorises in 0.70 s
-by PORD against 2.05 s by AMF (3.2e9 against 8.3e9 flops); without yarn
-contact the two take the same time there and at 40×80; the hanging 7×7 with
-yarn contact (1 512 rows) is 30 % faster by AMF."""
+ORDERING = 6
+"""MUMPS's ordering of the saddle point on one rank unless told otherwise
+(ICNTL(7)): QAMD. Its own choice here is AMF (Debian's MUMPS has no METIS
+or SCOTCH), whose factors grow fast with the yarn contact's pairs in the
+pattern. Factorisation time, AMF against QAMD: the full 20×40 jersey's first
+step 2.05 s against 0.50 s (PORD 0.70 s), the drape 12×12 96 against 43 ms,
+the hanging 7×7 8.2 against 6.2 ms; without yarn contact the same within
+10 % (40×80: 0.77 s each). Across ranks MUMPS chooses (QAMD was 10 %
+slower on 2 ranks at 40×80)."""
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -336,28 +337,12 @@ def regularization_option(prefix, comm):
                         nonnegative=True)
 
 
-_PORD_GIVEN = set()     # prefixes whose ICNTL(7) = 4 was set here, not by the user
-
-
-def _order(options, prefix, rows):
-    """MUMPS's ordering for ``rows`` rows (``PORD_ROWS``) in the options
-    (which its factor reads at its analysis), unless the user chose one."""
-    if options.hasName("mat_mumps_icntl_7") and prefix not in _PORD_GIVEN:
-        return
-    if rows >= PORD_ROWS:
-        options.setValue("mat_mumps_icntl_7", 4)
-        _PORD_GIVEN.add(prefix)
-    elif prefix in _PORD_GIVEN:
-        options.delValue("mat_mumps_icntl_7")
-        _PORD_GIVEN.discard(prefix)
-
-
 def saddle_ksp(saddle, prefix, null_pivots=False):
     """A KSP on the saddle point, then the command line. By default a direct
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
     than its LU on the 15×30 jersey, ``benchmarks/results/solver_sweep.json``)
     with ``WORKSPACE`` % extra workspace for delayed pivots (ICNTL(14)),
-    ordered by PORD from ``PORD_ROWS`` rows (ICNTL(7)); LAPACK LU for
+    ordered by ``ORDERING`` on one rank (ICNTL(7)); LAPACK LU for
     a dense K. With a regularised P (``saddle.delta`` > 0): MUMPS LDLᵀ of P
     without pivoting (a Krylov method chosen by options, at most 30
     iterations, solves K with it).
@@ -393,8 +378,9 @@ def saddle_ksp(saddle, prefix, null_pivots=False):
     options = PETSc.Options(prefix)
     if solver == "mumps" and not options.hasName("mat_mumps_icntl_14"):
         options.setValue("mat_mumps_icntl_14", WORKSPACE)
-    if solver == "mumps":
-        _order(options, prefix, saddle.K.getSize()[0])
+    if solver == "mumps" and saddle.K.getComm().getSize() == 1 and \
+            not options.hasName("mat_mumps_icntl_7"):
+        options.setValue("mat_mumps_icntl_7", ORDERING)
     ksp.setFromOptions()
     # a direct solve raises its factorisation's error at once; a Krylov
     # method leaves its reason (DIVERGED_ITS, DIVERGED_PC_FAILED) for Newton

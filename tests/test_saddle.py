@@ -176,14 +176,12 @@ def test_default_workspace_is_what_the_demo_needs(model):
     saddle.destroy()
 
 
-def test_large_saddle_points_are_ordered_by_pord(model, options, monkeypatch):
-    """From PORD_ROWS rows MUMPS orders by PORD (INFOG(7) = 4), below by its
-    own choice (AMF, 2), a prefix that had PORD forgets it on a small system,
-    and an ordering the user gives is kept at any size."""
-    import solvers.saddle as sd
+def test_the_ordering_is_qamd_on_one_rank_unless_told(model, options):
+    """MUMPS orders by QAMD (INFOG(7) = 6) on one rank, by its own choice
+    across ranks (AMF here, 2), and by the ordering the user gives."""
+    from solvers.saddle import ORDERING
 
-    def ordering(prefix, rows):
-        monkeypatch.setattr(sd, "PORD_ROWS", rows)
+    def ordering(prefix):
         saddle = SaddlePoint(jacobian(model, scale=1.01), model.C)
         ksp = saddle_ksp(saddle, prefix)
         z, rel = solve(saddle, ksp)
@@ -193,10 +191,12 @@ def test_large_saddle_points_are_ordered_by_pord(model, options, monkeypatch):
         assert rel < 1e-10
         return used
 
-    n = model.M.getSize()[0] + model.C.getSize()[0]
-    assert (ordering("t_ord_", n), ordering("t_ord_", n + 1)) == (4, 2)
+    assert ordering("t_ord_") == (ORDERING if COMM.size == 1 else 2) == \
+        (6 if COMM.size == 1 else 2)
     options(t_user_ord_mat_mumps_icntl_7=0)
-    assert ordering("t_user_ord_", n) == 0                  # AMD, as asked
+    assert ordering("t_user_ord_") == 0                      # AMD, as asked
+    if COMM.size == 1:
+        PETSc.Options().delValue("t_ord_mat_mumps_icntl_7")
 
 
 @pytest.mark.skipif(COMM.size > 1, reason="the 2-rank factorisation of this "
