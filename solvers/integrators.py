@@ -30,7 +30,6 @@ from .progress import note
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
-from .step_filter import set_step_filter
 from .stepping import PositionHistory, StepControl
 
 __all__ = ["SimulationError", "SymplecticEuler", "NewtonStepper", "BackwardEuler",
@@ -276,9 +275,8 @@ class NewtonStepper:
         self.snes.setOptionsPrefix(prefix)
         self.F, self.z = self.saddle.createVec(), self.saddle.createVec()
         self.snes.setFunction(self._residual, self.F)
-        bodies = getattr(getattr(system, "full", system), "barrier", None) is not None
-        if bodies:
-            self.snes.setLineSearchPreCheck(self._limit)
+        self.bodies = getattr(getattr(system, "full", system), "barrier", None) is not None
+        self.yarn_contact = getattr(system, "yarn_contact", None) is not None
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
         self.snes.setType("newtonls")
         # converged when the update moves ε by < newton_tol: 1e-9 yarn radii at
@@ -294,11 +292,8 @@ class NewtonStepper:
         self.ksp = saddle_ksp(self.saddle, prefix, getattr(system, "null_space", False))
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
-        # one pre-check: a body's step limit (which also applies the yarn
-        # contact's), else the yarn contact's filter alone
-        self.filter = set_step_filter(self.snes, self._step_fraction) \
-            if getattr(system, "yarn_contact", None) is not None and not bodies \
-            else None
+        if self.bodies or self.yarn_contact:
+            self.snes.setLineSearchPreCheck(self._limit)
         self.missing = None                 # tangent entries missed before a solve
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
@@ -363,13 +358,11 @@ class NewtonStepper:
 
     def _step_fraction(self, z, y):
         """Newton's update z ← z − y moves ε from ε̂ + κ v by −κ y_v: the
-        fraction of it the system allows (``step_fraction``). An update cut
-        short is ``limited``: a short update there is not convergence."""
+        fraction of it the yarn contact allows (``step_fraction``; local
+        arrays, collective)."""
         nu = self.saddle.nu
         x0 = self.xhat.getArray(readonly=True) + self.kappa * z[:nu]
-        fraction = self.system.step_fraction(x0, x0 - self.kappa * y[:nu])
-        self.limited = fraction < 1.0
-        return fraction
+        return self.system.step_fraction(x0, x0 - self.kappa * y[:nu])
 
     def like(self, system):
         """This integrator, its step control and its settings (the Newton
@@ -439,15 +432,20 @@ class NewtonStepper:
             fl[:] = self.Cx.getArray(readonly=True) / self.kappa
 
     def _limit(self, z, y):
-        """Newton's update −y of z shortened to the system's ``step_limit``
-        on the end point's move −κ y_u (a yarn stopped at a body's surface)."""
-        self._unpack(z)
-        self.dxe.getArray()[:] = -self.kappa * self.saddle.split(y)[0]
-        tau = self.system.step_limit(self.xe, self.dxe)
-        if getattr(self.system, "yarn_contact", None) is not None:
+        """Newton's update −y of z (Vecs) shortened to the largest fraction
+        τ that stops every yarn at a body's surface (the system's
+        ``step_limit`` on the end point's move −κ y_u) and keeps the yarns
+        apart (``_step_fraction``). An update so cut is ``limited``: a
+        short update there is not convergence."""
+        tau = 1.0
+        if self.bodies:
+            self._unpack(z)
+            self.dxe.getArray()[:] = -self.kappa * self.saddle.split(y)[0]
+            tau = self.system.step_limit(self.xe, self.dxe)
+        if self.yarn_contact:
             tau = min(tau, self._step_fraction(z.getArray(readonly=True),
                                                y.getArray(readonly=True)))
-        self.limited = tau < 1.0    # at a body or a yarn: not converged yet
+        self.limited = tau < 1.0
         if tau < 1.0:
             y.scale(tau)
 
@@ -507,7 +505,7 @@ class NewtonStepper:
         """One Newton solve of the step h from the predictor."""
         with EV_NEWTON:
             self.predict(h, self.tmp)
-            if self.filter is not None:
+            if self.yarn_contact:
                 self._filter_prediction()
                 self.missing = self.system.tangent_missed()
             self.xn.copy(self.xref)

@@ -56,7 +56,6 @@ from .integrators import SimulationError, _default, step_convergence
 from .reasons import reason_name
 from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
                      solve_saddle)
-from .step_filter import set_step_filter
 
 __all__ = ["StaticSolver"]
 
@@ -97,10 +96,8 @@ class StaticSolver:
         self.snes.setKSP(saddle_ksp(self.saddle, "static_",
                                           getattr(system, "null_space", False)))
         self.snes.setFromOptions()
-        nu = self.saddle.nu
-        self.filter = set_step_filter(
-            self.snes, lambda z, y: system.step_fraction(z[:nu], z[:nu] - y[:nu])) \
-            if getattr(system, "yarn_contact", None) is not None else None
+        if getattr(system, "yarn_contact", None) is not None:
+            self.snes.setLineSearchPreCheck(self._filter)
         self.x, self.zero = system.M.createVecLeft(), system.M.createVecLeft()
         self.Q, self.mu = system.M.createVecLeft(), system.C.createVecLeft()
         self.Cx, self.tmp = system.C.createVecLeft(), system.M.createVecLeft()
@@ -139,6 +136,16 @@ class StaticSolver:
         u, lam = self.saddle.split(z)
         self.x.getArray()[:] = u
         self.mu.getArray()[:] = lam
+
+    def _filter(self, z, y):
+        """Newton's update z ← z − y shortened to the fraction of its move of
+        ε the yarn contact allows (``step_fraction``: no two yarn surfaces
+        touch on the way)."""
+        nu = self.saddle.nu
+        x0 = z.getArray(readonly=True)[:nu]
+        t = self.system.step_fraction(x0, x0 - y.getArray(readonly=True)[:nu])
+        if t < 1.0:
+            y.scale(t)
 
     def _residual(self, snes, z, F):
         s = self.system

@@ -230,10 +230,15 @@ def test_an_update_cut_by_the_filter_is_not_convergence():
     integ, _, _ = run(full, BackwardEuler, 1e-3, 1)
     lo, hi = full.rest_state().getOwnershipRange()
     through = (pushed(fab, 3.0) - fab.X.reshape(-1, 3)).ravel()[lo:hi]
-    z = np.zeros_like(integ.z.getArray(readonly=True))
+    z, y = integ.z.duplicate(), integ.z.duplicate()
+    z.zeroEntries()
     for scale, cut in ((1.0, True), (0.01, False)):
-        y = np.zeros_like(z)
-        y[:hi - lo] = -scale * through / integ.kappa   # ε moves by −κ y
-        assert (integ._step_fraction(z, y) < 1.0) is cut
+        y.zeroEntries()
+        y.getArray()[:hi - lo] = -scale * through / integ.kappa   # ε moves by −κ y
+        asked = y.norm()
+        integ._limit(z, y)
         assert integ.limited is cut
+        assert (y.norm() < asked) is cut
+    z.destroy()
+    y.destroy()
     full.destroy()
