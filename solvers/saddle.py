@@ -60,8 +60,9 @@ or SCOTCH), whose factors grow fast with the yarn contact's pairs in the
 pattern. Factorisation time, AMF against QAMD: the full 20×40 jersey's first
 step 2.05 s against 0.50 s (PORD 0.70 s), the drape 12×12 96 against 43 ms,
 the hanging 7×7 8.2 against 6.2 ms; without yarn contact the same within
-10 % (40×80: 0.77 s each). Across ranks MUMPS chooses (QAMD was 10 %
-slower on 2 ranks at 40×80)."""
+10 % (40×80: 0.77 s each). In a run on several ranks MUMPS chooses (QAMD
+was 10 % slower on 2 ranks at 40×80), also for a solver on one of them
+(the option would stay in the database for the run's other solvers)."""
 
 
 def zero_diagonal(comm, n_local, n_global):
@@ -378,8 +379,8 @@ def saddle_ksp(saddle, prefix, null_pivots=False):
     options = PETSc.Options(prefix)
     if solver == "mumps" and not options.hasName("mat_mumps_icntl_14"):
         options.setValue("mat_mumps_icntl_14", WORKSPACE)
-    if solver == "mumps" and saddle.K.getComm().getSize() == 1 and \
-            not options.hasName("mat_mumps_icntl_7"):
+    if solver == "mumps" and PETSc.COMM_WORLD.getSize() == 1 and \
+            not options.hasName("mat_mumps_icntl_7"):     # a serial run
         options.setValue("mat_mumps_icntl_7", ORDERING)
     ksp.setFromOptions()
     # a direct solve raises its factorisation's error at once; a Krylov
