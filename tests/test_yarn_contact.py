@@ -8,6 +8,8 @@ from petsc4py import PETSc
 
 from knitfem.contact.yarn_contact import YarnContact, segment_distance
 from knitfem.knit.fabric import Fabric
+from knitfem.cli.scenes import rotation
+from knitfem.knit.pattern import Jersey, jersey_fabric
 from knitfem.model.full import FullModel, Material
 from solvers.integrators import BackwardEuler
 
@@ -242,3 +244,26 @@ def test_an_update_cut_by_the_filter_is_not_convergence():
     z.destroy()
     y.destroy()
     full.destroy()
+
+
+def test_a_tube_at_rest_has_a_band_and_no_barrier():
+    """On closed yarns (a tube knitted in the round) samples next to each
+    other across a yarn's seam never count as touching, and the pairs the
+    template itself holds tight (its legs 0.99 x 2r apart) are left out: the
+    band is the flat jersey's d̂ = 0.072 r (it was -1.19 r: the seam's
+    neighbours, 0.34 x 2r apart, counted as a pair), E_y = 0 at rest and
+    after a rigid motion, and a small move is not cut."""
+    fab = jersey_fabric(Jersey(4, 8, knit="tube"), hold="top")
+    yc = YarnContact(fab, Material().EI)
+    P = fab.X.reshape(-1, 3)
+    assert yc.dhat == pytest.approx(0.072 * fab.radius, rel=1e-12)
+    assert yc.tight_at_rest > 0 and yc.min_distance(P) >= yc.dmin + yc.dhat
+    R = rotation((30, 40, 50))
+    assert yc.energy(P) == 0.0 and yc.energy(P @ R.T + 0.01) == 0.0
+    move = 1e-3 * fab.radius * np.random.default_rng(1).standard_normal(P.shape)
+    assert yc.step_fraction(P, P + move) == 1.0
+    seam = yc.edges[yc.edges[:, 1] < yc.edges[:, 0]]     # each closed yarn's last edge
+    first = yc.edges[np.searchsorted(yc.edges[:, 0], seam[:, 1]) + 1]
+    e = np.searchsorted(yc.edges[:, 0], seam[:, 0])
+    f = np.searchsorted(yc.edges[:, 0], first[:, 0])
+    assert not yc._apart(e, f).any() and not yc.edges_may_touch(e, f).any()

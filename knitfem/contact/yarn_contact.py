@@ -25,11 +25,17 @@ apart along it never do: samples are grouped along each yarn in runs of W
 and once shifted by W / 2, and two samples of one yarn are kept apart only
 when they lie in different runs of both groupings (the toolkit's vertex
 patch filters, combined in C++): pairs closer than W / 2 samples are
-always excluded, pairs farther than W always included. Near a persistent
+always excluded, pairs farther than W always included (on a closed yarn,
+a tube's course, the pairs less than W apart across its seam are excluded
+too: the runs do not wrap round). Near a persistent
 crossing (s_a, s_b) the samples of yarn a within ``window`` of s_a and of
 yarn b within ``window`` of s_b are excluded from each other (a sparse
-filter): the crossing holds that pair at its rest separation, and a
-barrier there would fight the constraint. d̂ is ``band`` × r, lowered
+filter; a window on a closed yarn reaches across its seam): the crossing
+holds that pair at its rest separation, and a barrier there would fight the
+constraint. Pairs the template itself holds within half the band of
+touching (a tube's legs, 0.99 × 2r apart) are excluded the same way
+(``tight_at_rest`` edge pairs): no band above them could vanish at rest.
+d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
 
@@ -138,6 +144,9 @@ class YarnContact:
         self.sample_param = cat(param, 0).astype(float)
         first = np.searchsorted(self.sample_yarn, np.arange(fabric.nyarn))
         self.sample_index = np.arange(nv) - first[self.sample_yarn]   # along its yarn
+        self.yarn_first = first
+        self.yarn_samples = np.bincount(self.sample_yarn, minlength=fabric.nyarn)
+        self.yarn_closed = np.asarray(fabric.closed, bool)
         V = self.S @ fabric.X.reshape(-1, 3)
         self.mesh = ipctk.CollisionMesh(_fortran(V), self.edges.astype(np.int32),
                                         np.zeros((0, 3), np.int32))
@@ -145,6 +154,14 @@ class YarnContact:
         half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
         self.run = 2 * half
         self.mesh.can_collide = self._filter(fabric, window)
+        # pairs the template itself brings within half the band (a tube's
+        # closing stitch: 0.99 x 2r) are left out: no band above them vanishes
+        e, f = self.close_edges(V, self.dmin + 0.5 * band * r)
+        self.tight_at_rest = len(e)
+        if len(e):
+            a, b = self.edges[e], self.edges[f]
+            self.mesh.can_collide = self._filter(fabric, window, (
+                np.repeat(a, 2, axis=1).ravel(), np.tile(b, 2).ravel()))
         self.collisions, self.built, self.active = ipctk.NormalCollisions(), None, None
         self.candidates_at, self.moved_at, self.candidate_builds = None, None, 0
         clearance = self._clearance(V, band * r)
@@ -154,8 +171,9 @@ class YarnContact:
         self.pairs = self.segment_pairs(fabric.X.reshape(-1, 3), self.margin)
         self.missed = 0
 
-    def _filter(self, fabric, window):
-        """The toolkit's filter of the sample pairs that may touch."""
+    def _filter(self, fabric, window, tight=(np.zeros(0, np.int64),) * 2):
+        """The toolkit's filter of the sample pairs that may touch: not
+        those near a crossing, along a yarn (its seam too), or ``tight``."""
         i = self.sample_index
         base = self.sample_yarn * (i.max(initial=0) + 3)
         runs = [ipctk.make_vertex_patches_filter(
@@ -173,15 +191,42 @@ class YarnContact:
             return (np.searchsorted(key, centre - window, side="right"),
                     np.searchsorted(key, centre + window, side="left"))
 
+        # on a closed yarn a window reaches across its seam: the crossing is
+        # taken again a whole yarn (nseg) before and after, on either side
+        ya, yb = np.asarray(ya), np.asarray(yb)
+        turn_a = np.where(fabric.closed[ya], fabric.yarn_nseg[ya], 0)
+        turn_b = np.where(fabric.closed[yb], fabric.yarn_nseg[yb], 0)
+        shift = np.array([-1, 0, 1])
+        n = len(ya)
+        sa = np.broadcast_to(np.asarray(sa)[:, None, None] + shift[:, None]
+                             * turn_a[:, None, None], (n, 3, 3)).ravel()
+        sb = np.broadcast_to(np.asarray(sb)[:, None, None] + shift
+                             * turn_b[:, None, None], (n, 3, 3)).ravel()
+        ya, yb = np.repeat(ya, 9), np.repeat(yb, 9)
         (a0, a1), (b0, b1) = run(ya, sa), run(yb, sb)
-        na, nb = a1 - a0, b1 - b0
+        na, nb = np.maximum(a1 - a0, 0), np.maximum(b1 - b0, 0)
         c = np.repeat(np.arange(len(na)), na * nb)        # every (a, b) pair
         k = np.arange(len(c)) - np.repeat(np.cumsum(na * nb) - na * nb, na * nb)
         a, b = a0[c] + k // nb[c], b0[c] + k % nb[c]
+        seam_a, seam_b = self._seam_pairs()
+        a, b = np.concatenate([a, seam_a, tight[0]]), np.concatenate([b, seam_b, tight[1]])
         self.excluded = np.unique(np.minimum(a, b) * nv + np.maximum(a, b))
         lo, hi = np.divmod(self.excluded, nv)
         near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
         return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
+
+    def _seam_pairs(self):
+        """Sample pairs (a, b) of a closed yarn less than a run apart along
+        it across its seam (the runs of ``_filter`` do not wrap round)."""
+        w = self.run
+        a, b = [], []
+        for start, m in zip(self.yarn_first[self.yarn_closed],
+                            self.yarn_samples[self.yarn_closed]):
+            i, j = np.triu_indices(min(w, m), 1)     # i < j < w: j − i apart
+            a.append(start + i)                      # i, and m − w + j: w − (j − i)
+            b.append(start + (m - w + j) % m)        # apart across the seam
+        cat = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
+        return cat(a), cat(b)
 
     def _clearance(self, V, probe):
         """Smallest d − dmin of the pairs that may touch at the samples V,
@@ -398,8 +443,10 @@ class YarnContact:
         of samples apart (a cheap first filter: pairs nearer along a yarn
         never touch)."""
         e0 = self.edges[:, 0]
-        return (self.sample_yarn[e0[e]] != self.sample_yarn[e0[f]]) | \
-            (np.abs(e0[e] - e0[f]) >= self.run // 2 - 1)
+        ya = self.sample_yarn[e0[e]]
+        gap = np.abs(e0[e] - e0[f])
+        gap = np.where(self.yarn_closed[ya], np.minimum(gap, self.yarn_samples[ya] - gap), gap)
+        return (ya != self.sample_yarn[e0[f]]) | (gap >= self.run // 2 - 1)
 
     def edge_lengths(self, V):
         return np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
