@@ -120,6 +120,23 @@ def test_frame_indifference():
     assert np.allclose(gQ, gP @ Rm.T, rtol=0, atol=1e-8 * np.abs(gP).max())
 
 
+def test_step_filter_sees_pairs_beyond_its_list():
+    """Two yarns 4r of clearance apart (beyond the Verlet list's reach,
+    d̂ + margin + skin ≈ 0.6 r) driven 5r each through one another: the
+    candidates say nothing, the moving edges' own search cuts the move,
+    and no point of the path to the cut comes within dmin."""
+    fab = crossing(gap=4.0)
+    yc = YarnContact(fab, Material().EI)
+    P0 = fab.X.reshape(-1, 3)
+    e, _, _ = yc._near(np.asfortranarray(yc.samples(P0)), yc.dmin + yc.dhat + yc.margin)
+    assert len(e) == 0                                     # no candidate near
+    P1 = pushed(fab, 5.0)
+    t = yc.step_fraction(P0, P1)
+    assert 0.3 < t < 0.4    # measured 0.379: 3.6r of the 4r closed at ~9.2r (spline samples)
+    for tau in np.linspace(0, t, 9)[1:]:
+        assert yc.min_distance(P0 + tau * (P1 - P0), reach=8 * R) > yc.dmin
+
+
 def test_step_filter_never_crosses():
     """Random moves of the jersey cut by ``step_fraction``: no point of the
     path comes within dmin; a translation is not cut."""
