@@ -289,7 +289,8 @@ class NewtonStepper:
             lambda: self.limited)))
         _default(prefix, "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
-        self.ksp = saddle_ksp(self.saddle, prefix, getattr(system, "null_space", False))
+        self.null_space = getattr(system, "null_space", False)
+        self.ksp = saddle_ksp(self.saddle, prefix, self.null_space)
         self.snes.setKSP(self.ksp)
         self.snes.setFromOptions()
         if self.bodies or self.yarn_contact:
@@ -337,8 +338,7 @@ class NewtonStepper:
             obj.destroy()
         self._layout(x)
         self.snes.setJacobian(self._jacobian, self.saddle.K, self.saddle.P)
-        self.ksp = saddle_ksp(self.saddle, self.prefix,
-                              getattr(self.system, "null_space", False))
+        self.ksp = saddle_ksp(self.saddle, self.prefix, self.null_space)
         self.snes.setKSP(self.ksp)
 
     def _missing_entries(self, test):

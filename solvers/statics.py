@@ -94,7 +94,7 @@ class StaticSolver:
         _default("static_", "snes_linesearch_type", "basic")
         self.snes.setTolerances(rtol=1e-12, atol=1e-50, max_it=500)
         self.snes.setKSP(saddle_ksp(self.saddle, "static_",
-                                          getattr(system, "null_space", False)))
+                                    getattr(system, "null_space", False)))
         self.snes.setFromOptions()
         if getattr(system, "yarn_contact", None) is not None:
             self.snes.setLineSearchPreCheck(self._filter)

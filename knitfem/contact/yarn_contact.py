@@ -153,15 +153,17 @@ class YarnContact:
         edge = np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
         half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
         self.run = 2 * half
-        self.mesh.can_collide = self._filter(fabric, window)
+        self.excluded = self._excluded(fabric, window)
+        self.mesh.can_collide = self._filter()
         # pairs the template itself brings within half the band (a tube's
         # closing stitch: 0.99 x 2r) are left out: no band above them vanishes
         e, f = self.close_edges(V, self.dmin + 0.5 * band * r)
         self.tight_at_rest = len(e)
         if len(e):
             a, b = self.edges[e], self.edges[f]
-            self.mesh.can_collide = self._filter(fabric, window, (
+            self.excluded = np.union1d(self.excluded, self._keys(
                 np.repeat(a, 2, axis=1).ravel(), np.tile(b, 2).ravel()))
+            self.mesh.can_collide = self._filter()
         self.collisions, self.built, self.active = ipctk.NormalCollisions(), None, None
         self.candidates_at, self.moved_at, self.candidate_builds = None, None, 0
         clearance = self._clearance(V, band * r)
@@ -171,16 +173,27 @@ class YarnContact:
         self.pairs = self.segment_pairs(fabric.X.reshape(-1, 3), self.margin)
         self.missed = 0
 
-    def _filter(self, fabric, window, tight=(np.zeros(0, np.int64),) * 2):
+    def _filter(self):
         """The toolkit's filter of the sample pairs that may touch: not
-        those near a crossing, along a yarn (its seam too), or ``tight``."""
+        those along a yarn (runs of ``run`` samples, in two groupings) nor
+        the ``excluded`` ones."""
         i = self.sample_index
         base = self.sample_yarn * (i.max(initial=0) + 3)
         runs = [ipctk.make_vertex_patches_filter(
             (base + (i + shift) // self.run).astype(np.int32))
             for shift in (0, self.run // 2)]
+        lo, hi = np.divmod(self.excluded, len(self.sample_yarn))
+        near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
+        return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
+
+    def _keys(self, a, b):
+        """Sorted unique keys min · nsamples + max of sample pairs (a, b)."""
+        return np.unique(np.minimum(a, b) * len(self.sample_yarn) + np.maximum(a, b))
+
+    def _excluded(self, fabric, window):
+        """Keys (``_keys``) of the sample pairs near a crossing, and along a
+        closed yarn across its seam (``_seam_pairs``)."""
         ya, sa, yb, sb = fabric.contacts
-        nv = len(self.sample_yarn)
         # samples sorted by (yarn, parameter): a crossing's window on a yarn,
         # |param − s| < window, is one run of them, found by bisection
         span = self.sample_param.max(initial=0.0) + 2 * window + 1.0
@@ -209,11 +222,7 @@ class YarnContact:
         k = np.arange(len(c)) - np.repeat(np.cumsum(na * nb) - na * nb, na * nb)
         a, b = a0[c] + k // nb[c], b0[c] + k % nb[c]
         seam_a, seam_b = self._seam_pairs()
-        a, b = np.concatenate([a, seam_a, tight[0]]), np.concatenate([b, seam_b, tight[1]])
-        self.excluded = np.unique(np.minimum(a, b) * nv + np.maximum(a, b))
-        lo, hi = np.divmod(self.excluded, nv)
-        near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
-        return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
+        return self._keys(np.append(a, seam_a), np.append(b, seam_b))
 
     def _seam_pairs(self):
         """Sample pairs (a, b) of a closed yarn less than a run apart along
