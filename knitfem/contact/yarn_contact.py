@@ -171,7 +171,7 @@ class YarnContact:
         self.kappa = EI / r**2 / (4.77 * self.dmin**2 * self.dhat)
         self.potential = ipctk.BarrierPotential(self.dhat, self.kappa)
         self.pairs = self.segment_pairs(fabric.X.reshape(-1, 3), self.margin)
-        self.missed = 0
+        self.missed, self._DT = 0, None
 
     def _filter(self):
         """The toolkit's filter of the sample pairs that may touch: not
@@ -298,10 +298,9 @@ class YarnContact:
         two edges close in by at most twice the largest move)."""
         V0 = self.candidates_at
         if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
-            e, f = self.close_edges(V, self.dmin + self.dhat + self.margin + self.skin)
-            e0, e1 = self.edges[:, 0], self.edges[:, 1]
-            d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
-            self.candidate_edges, self.candidates_at = (e, f, d), V.copy()
+            self.candidate_edges = self.close_edges(
+                V, self.dmin + self.dhat + self.margin + self.skin, distances=True)
+            self.candidates_at = V.copy()
             self.moved_at = None
             self.candidate_builds += 1
         return self.candidate_edges
@@ -320,47 +319,37 @@ class YarnContact:
             return np.zeros(self.D.shape[1])
         return self.D.T @ self.potential.gradient(col, self.mesh, V)
 
-    def hessian(self, P, project=True):
-        """∂²E_y/∂ε² (scipy CSR, 3 ncp_total square), each pair's block
-        projected to positive semi-definite unless ``project`` is False."""
-        ci, cj, B = self.hessian_blocks(P, project)
+    def hessian(self, P, project=True, rows=None):
+        """∂²E_y/∂ε² = Dᵀ ∇²E_y D (scipy CSR, 3 ncp_total square, or its
+        rows of control points ``rows`` = (lo, hi) only), each pair's 12 × 12
+        block of ∇²E_y projected to positive semi-definite unless
+        ``project`` is False (sparse products: the samples' 3 × 3 blocks go,
+        weighted, to the 4 × 4 control points of S's rows)."""
+        lo, hi = rows or (0, self.S.shape[1])
         n = self.D.shape[1]
-        k = np.arange(3)
-        rows = np.broadcast_to(3 * ci[:, None, None] + k[:, None], B.shape)
-        cols = np.broadcast_to(3 * cj[:, None, None] + k, B.shape)
-        return sp.csr_matrix((B.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n))
-
-    def hessian_blocks(self, P, project=True):
-        """∂²E_y/∂ε² = Dᵀ ∇²E_y D as 3 × 3 blocks (ci, cj, B (n, 3, 3)) of
-        control points ci, cj, repeated blocks to be summed: each 3 × 3
-        block of samples i, j of the toolkit's Hessian goes, weighted, to
-        the 4 × 4 control points of S's rows i and j."""
         V = _fortran(self.samples(P))
         col = self._build(V)
         if col is None:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 3))
+            return sp.csr_matrix((3 * (hi - lo), n))
         how = ipctk.PSDProjectionMethod.CLAMP if project else \
             ipctk.PSDProjectionMethod.NONE
-        H = self.potential.hessian(col, self.mesh, V, how).tocoo()
-        (i, a), (j, b) = np.divmod(H.row, 3), np.divmod(H.col, 3)
-        nv = len(V)
-        blocks, at = np.unique(i.astype(np.int64) * nv + j, return_inverse=True)
-        Hs = np.zeros((len(blocks), 3, 3))
-        Hs[at, a, b] = H.data
-        bi, bj = np.divmod(blocks, nv)
-        w = self.S_vals[bi][:, :, None] * self.S_vals[bj][:, None, :]
-        ci = np.broadcast_to(self.S_cols[bi][:, :, None], w.shape).ravel()
-        cj = np.broadcast_to(self.S_cols[bj][:, None, :], w.shape).ravel()
-        return ci, cj, (w[..., None, None] * Hs[:, None, None]).reshape(-1, 3, 3)
+        H = self.potential.hessian(col, self.mesh, V, how).tocsr()
+        if self._DT is None or self._DT[0] != (lo, hi):
+            self._DT = (lo, hi), self.D.T.tocsr()[3 * lo:3 * hi]
+        return self._DT[1] @ H @ self.D
 
     def min_distance(self, P, reach=None):
         """Smallest distance of two edges that may touch, among those closer
-        than dmin + ``reach`` (default d̂ + margin; inf when none is)."""
-        V = _fortran(self.samples(P))
-        col = ipctk.NormalCollisions()
-        col.build(self.mesh, V, reach or self.dhat + self.margin, self.dmin)
-        return np.sqrt(col.compute_minimum_distance(self.mesh, V)) \
-            if not col.empty() else np.inf
+        than dmin + ``reach`` (default d̂ + margin; inf when none is): from
+        the Verlet list (``_near``) within its reach, else a search of its own
+        (``close_edges``)."""
+        V = self.samples(P)
+        reach = self.dhat + self.margin if reach is None else reach
+        if reach <= self.dhat + self.margin:
+            d = self._near(V, self.dmin + reach)[2]
+        else:
+            d = self.close_edges(V, self.dmin + reach, distances=True)[2]
+        return float(d.min()) if len(d) else np.inf
 
     def step_fraction(self, P0, P1, keep=0.1, rounds=6):
         """The largest t ≤ 1 (found conservatively) for which the straight
@@ -481,9 +470,9 @@ class YarnContact:
                 may |= self.samples_may_touch(a[:, p], b[:, q])
         return may & ~shared
 
-    def close_edges(self, V, within):
+    def close_edges(self, V, within, distances=False):
         """Edge pairs (e, f) that may touch and are closer than ``within``
-        at the samples V."""
+        at the samples V (and their distances, if ``distances``)."""
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         mid, half = 0.5 * (V[e0] + V[e1]), 0.5 * self.edge_lengths(V)
         close = cKDTree(mid).query_pairs(within + 2 * half.max(), output_type="ndarray")
@@ -493,7 +482,7 @@ class YarnContact:
         d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
         hit = d < within
         hit[hit] &= self.edges_may_touch(e[hit], f[hit])
-        return e[hit], f[hit]
+        return (e[hit], f[hit], d[hit]) if distances else (e[hit], f[hit])
 
     def segment_pairs(self, P, reach):
         """Keys a · nseg_total + b (a < b, global segment numbers; sorted,

@@ -420,35 +420,24 @@ class FullModel:
                 self.K.destroy()
             self.K = K.mat
             self.K.setOptionsPrefix("full_K_")
-            # K's 3 × 3 blocks by key (local row) · ncp + column, for the
-            # yarn contact's Hessian (csr_rows: CSR order is key order)
-            self.block_indptr = tangent.indptr
-            self.block_keys = csr_rows(tangent.indptr).astype(np.int64) * lay.ncp \
-                + tangent.indices
-            self.tangent_indptr3 = indptr3
+            # K's entries by key (local row) · 3 ncp + column, for the yarn
+            # contact's Hessian (csr_rows: CSR order is key order)
+            self.entry_keys = csr_rows(indptr3).astype(np.int64) * N + indices3
             self.tangent_place = K.place(np.arange(len(indices3)))
         self._tangent = K
 
     def _add_contact_hessian(self, x, values):
-        """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern; blocks the
-        pattern lacks are dropped and counted (``yarn_contact.missed``)."""
+        """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern, this rank's
+        rows; entries the pattern lacks are dropped and counted
+        (``yarn_contact.missed``)."""
         lay = self.layout
-        ci, cj, B = self.yarn_contact.hessian_blocks(self.all_points(x))
-        mine = (ci >= lay.cp_start) & (ci < lay.cp_end)
-        if not mine.any():
-            return
-        ci, cj, B = ci[mine] - lay.cp_start, cj[mine], B[mine]
-        keys = ci * lay.ncp + cj
-        k = np.minimum(np.searchsorted(self.block_keys, keys), len(self.block_keys) - 1)
-        hit = self.block_keys[k] == keys
-        self.yarn_contact.missed += int(np.count_nonzero(B[~hit]))
-        ci, k, B = ci[hit], k[hit], B[hit]
-        # entry (3I + a, 3J + b) of block k of row I: 3 (k − start of row I) + b
-        # further on than row 3I + a's start
-        c = np.arange(3)
-        pos = self.tangent_indptr3[3 * ci[:, None, None] + c[:, None]] \
-            + 3 * (k - self.block_indptr[ci])[:, None, None] + c
-        values += np.bincount(self.tangent_place[pos.ravel()], B.ravel(),
+        H = self.yarn_contact.hessian(self.all_points(x),
+                                      rows=(lay.cp_start, lay.cp_end)).tocoo()
+        keys = H.row.astype(np.int64) * (3 * lay.ncp) + H.col
+        k = np.minimum(np.searchsorted(self.entry_keys, keys), len(self.entry_keys) - 1)
+        hit = self.entry_keys[k] == keys
+        self.yarn_contact.missed += int(np.count_nonzero(H.data[~hit]))
+        values += np.bincount(self.tangent_place[k[hit]], H.data[hit],
                               minlength=len(values))
 
     def stiffness_values(self, x, xref=None):
