@@ -90,10 +90,12 @@ def test_reduced_model_is_sampled_and_reads_either_state():
     P = np.asarray(knitfem.control_points(red, q))
     assert P.shape == fabric.X.shape
     eps = red.full_state(q)
-    # ε = Γα formed by the embedding and by the gathered points: 2e-19 m apart
+    # ε = Γα formed by the embedding and by the gathered points: round-off of
+    # ~1e-2 m (measured 0 m, 1 and 2 ranks)
     assert np.allclose(np.asarray(knitfem.control_points(red, eps)), P, rtol=0,
-                       atol=1e-15)
-    assert np.allclose(P, fabric.X, rtol=0, atol=1e-12)     # Γ reproduces the rest
+                       atol=1e-15 * np.abs(P).max())
+    # Γ reproduces the rest (measured 3.5e-18 m, 2 ranks 5.2e-18)
+    assert np.allclose(P, fabric.X, rtol=0, atol=4e-17)
     exact = knitfem.reduced_model(fabric, sampling="exact")
     assert getattr(exact, "sampling", None) is None
     for s in (red, exact):
@@ -114,8 +116,9 @@ def test_free_fall_through_the_api(tmp_path):
     assert drop == pytest.approx(0.5 * 9.81 * 0.02**2, rel=1e-2)
     P = knitfem.centrelines(sim)
     assert P.nyarn == 2 and P.points.shape[1] == 3
+    # the centrelines fall as the control points (measured 2.7e-19 m, 2 ranks 1.6e-18)
     assert np.allclose(P.points[:, 1].mean(), knitfem.centrelines(
-        full, full.rest_state()).points[:, 1].mean() - drop, rtol=0, atol=1e-6)
+        full, full.rest_state()).points[:, 1].mean() - drop, rtol=0, atol=1.5e-17)
     if out:
         with open(os.path.join(out, "summary.json")) as f:
             assert json.load(f)["steps"] == rec["steps"]
