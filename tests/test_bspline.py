@@ -20,10 +20,10 @@ def test_basis_nonnegative_and_reproduces_linear():
     assert B.min() >= 0
     # Σ b_a(u) (k + a − 1) = k + u: the control point index minus one.
     # measured 1.8e-16
-    assert np.allclose(B @ (np.arange(4) - 1.0), U, atol=0, rtol=5e-15)
+    assert np.allclose(B @ (np.arange(4) - 1.0), U, atol=0, rtol=1e-15)
     # measured 0
     assert np.allclose(bspline.basis(U, 1) @ (np.arange(4) - 1.0), 1, atol=0,
-                       rtol=5e-15)
+                       rtol=1e-15)
 
 
 @pytest.mark.parametrize("nu", [0, 1, 2])

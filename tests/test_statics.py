@@ -141,7 +141,8 @@ def test_hanging_knit_mechanism_matches_damped_dynamics():
     sag = X[..., 1].min() - Pd[..., 1].min()
     assert sag > 1e-5                                            # it did sag
     assert abs(P[..., 1].min() - Pd[..., 1].min()) < 2e-13 * sag  # measured 1.2e-14
-    assert np.abs(P - Pd).max() < 4e-12 * np.abs(Pd - X).max()  # measured 3.1e-13
+    # measured 1.5e-13 (2 ranks 2.8e-13)
+    assert np.abs(P - Pd).max() < 2e-12 * np.abs(Pd - X).max()
     # on null(C), K has zero modes at rest and is positive definite at the drape
     rest = np.linalg.eigvalsh(reduced_stiffness(model, model.rest_state()))
     assert abs(rest[0]) < 6e-13 * rest[-1]  # measured 5.5e-14
