@@ -49,7 +49,7 @@ def test_started_turned_strains_nothing(kind, turn, gravity):
     eps = system.full_state(x)
     lo, hi = eps.getOwnershipRange()
     turned = fabric.start_points().ravel()[lo:hi]
-    assert np.abs(eps.getArray() - turned).max() < 3e-16  # measured 2.1e-17
+    assert np.abs(eps.getArray() - turned).max() < 1.5e-16  # measured 1.4e-17 (2.1e-17 before)
     # the start is the rest turned, not the rest: contacts hold there
     assert np.abs(turned - fabric.X.ravel()[lo:hi]).max() > fabric.radius
     v = x.duplicate()
@@ -118,7 +118,8 @@ def test_corner_hung_static_and_dynamics_agree(tmp_path):
     drop = hold_y - static["centroid"][1]
     assert drop > 0.01
     assert dyn["kinetic_energy"] < 6e-12 * dyn["total_energy"]  # measured 5e-13
-    assert np.allclose(dyn["centroid"], static["centroid"], rtol=0, atol=1e-3 * drop)
+    # measured 4.0e-7 of the drop
+    assert np.allclose(dyn["centroid"], static["centroid"], rtol=0, atol=3e-6 * drop)
     assert abs(static["centroid"][0]) < 1e-12 * drop  # below the corner: 1.5e-13 measured
     for name in ("total_energy", "elastic_energy"):
         assert dyn[name] == pytest.approx(static[name], rel=1e-2)

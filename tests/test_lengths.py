@@ -63,7 +63,7 @@ def test_layout_splits_whole_yarns_by_control_points(size):
     assert np.all(np.diff(lay.yarn_ranges) >= 0)
     share = np.arange(size + 1) * 220 / size
     nearest = np.abs(start[:, None] - share).min(axis=0)
-    assert np.allclose(np.abs(lay.cp_ranges - share), nearest)
+    assert np.array_equal(np.abs(lay.cp_ranges - share), nearest)  # the same subtraction
     for nyarn in (6, 7):
         counts = np.diff(YarnLayout(Comm, np.arange(nyarn + 1) * 11).yarn_ranges)
         assert counts.sum() == nyarn and np.ptp(counts) <= 1
@@ -105,8 +105,9 @@ def test_runs_equal_one_ranks(name, kind):
     par, xp = scene(COMM, name, kind)
     ser, xs = scene(SELF, name, kind)
     assert np.abs(xs - ser.fabric.X.ravel()).max() > 1e-7            # it moved
-    # equal up to Newton's tolerance (1e-9 yarn radii a step)
-    assert np.allclose(xp, xs, rtol=0, atol=1e-8 * ser.fabric.radius)
+    # equal within Newton's tolerance (1e-9 yarn radii a step): measured
+    # 1.5e-11 r on 2 ranks (0 on one)
+    assert np.allclose(xp, xs, rtol=0, atol=1e-10 * ser.fabric.radius)
 
 
 @pytest.mark.parametrize("kind", ["full", "reduced", "mixed"])

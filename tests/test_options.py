@@ -63,7 +63,7 @@ def test_first_and_largest_step(tmp_path):
     _, bounded = knitfem(tmp_path / "b", *SMALL, "-knit_t_end", "0.02",
                          "-knit_dt_initial", "1e-5", "-knit_dt_max", "5e-4")
     assert default["dt_max"] > 3e-3 and default["dt_min"] > 5e-4
-    assert bounded["dt_min"] == pytest.approx(1e-5, rel=1e-12)
+    assert bounded["dt_min"] == 1e-5  # the first step: the option's value, exactly
     assert bounded["dt_max"] <= 5e-4 * (1 + 1e-12)
     assert bounded["steps"] >= 0.02 / 5e-4
 
@@ -139,7 +139,8 @@ def test_tangent_changes_iterations_not_states(tmp_path):
     tolerance, 1e-9 r) in different iterations."""
     recs = [knitfem(tmp_path / t, *SMALL, *FIXED, "-knit_t_end", "0.003",
                     "-knit_tangent", t)[1] for t in ("exact", "mip")]
-    assert np.allclose(recs[0]["centroid"], recs[1]["centroid"], rtol=0, atol=5e-13)
+    # measured 2.0e-14
+    assert np.allclose(recs[0]["centroid"], recs[1]["centroid"], rtol=0, atol=1.5e-13)
     assert recs[0]["newton_iterations"] != recs[1]["newton_iterations"]
 
 
@@ -169,7 +170,8 @@ def test_numpy_kernels_give_the_compiled_run(tmp_path):
                     "-knit_kernels", k) for k in ("compiled", "numpy")]
     (_, compiled), (p, numpy_) = runs
     assert p.returncode == 0, p.stderr
-    assert np.allclose(numpy_["centroid"], compiled["centroid"], rtol=0, atol=1e-15)
+    # measured 3.5e-18
+    assert np.allclose(numpy_["centroid"], compiled["centroid"], rtol=0, atol=3e-17)
 
 
 def catenary_sag(length, span):
@@ -201,7 +203,7 @@ def test_quadrature_converges(tmp_path):
                              "-knit_quadrature", n)[1]["centroid"])
          for n in ("2", "3", "6")}
     d2, d3 = np.abs(c["2"] - c["6"]).max(), np.abs(c["3"] - c["6"]).max()
-    assert 0 < d3 < 0.5 * d2
+    assert 0 < d3 < 0.1 * d2  # measured d3 = 0.024 d2
 
 
 def test_pulled_stitch_moves_most(tmp_path):

@@ -89,8 +89,8 @@ def test_reduced_forces_equal_projected_full_forces():
 
 def test_total_mass_kept(pair):
     full, red = pair
-    # measured 3.6e-16
-    assert to_scipy(red.m).sum() == pytest.approx(to_scipy(full.m).sum(), rel=5e-15)
+    # measured 1.8e-16 (3.6e-16 before)
+    assert to_scipy(red.m).sum() == pytest.approx(to_scipy(full.m).sum(), rel=1.5e-15, abs=0)
     # measured 4.4e-16
     assert np.allclose(to_scipy(red.embedding.Gamma_scalar).sum(1), 1, atol=0,
                        rtol=5e-15)
@@ -133,9 +133,9 @@ def test_world_constraints_reduced_to_independent_rows(pair):
     assert r.norm() < 1e-15
 
 
-@pytest.mark.parametrize("integrator,dt,tol", [(SymplecticEuler, 5e-7, 1e-10),
-                                               (BackwardEuler, 1e-3, 1e-8)])
-def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol):
+@pytest.mark.parametrize("integrator,dt,tol,move", [(SymplecticEuler, 5e-7, 3e-13, 1e-9),
+                                                    (BackwardEuler, 1e-3, 1e-11, 1e-8)])
+def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol, move):
     """A motion in range(Γ) is reproduced exactly by the reduced model.
 
     Γ must have full column rank (ΓᵀMΓ invertible): a 4×4×2 volume around
@@ -150,9 +150,10 @@ def test_free_fall_and_translation_identical_in_both_models(integrator, dt, tol)
     _, xr, vr = run(red, integrator, dt, 15, np.tile([0.01, 0.02, -0.005], nv // 3))
     ef = gather(COMM, xf)
     er = gather(COMM, red.full_state(xr))
-    # round-off (explicit) or Newton's tolerance, 1e-9 radii a step (implicit)
+    # round-off (explicit) or within Newton's tolerance, 1e-9 radii a step
+    # (implicit): measured 4.2e-14 r and 1.1e-12 r
     assert np.allclose(ef, er, rtol=0, atol=tol * fab.radius)
-    assert np.abs(ef - fab.X.ravel()).max() > 1e-4 * tol ** 0.5  # it did move
+    assert np.abs(ef - fab.X.ravel()).max() > move  # it did move
 
 
 # -- the sparse reduced tangent, the shell on sampled stitches, bodies on an
@@ -318,7 +319,8 @@ def test_shell_on_sampled_stitches_weighs_what_it_stands_for():
     every, some = bodied(per_patch=1000), bodied(per_patch=2)
     assert np.array_equal(every.shell.xi, np.ones(every.shell.windows))
     assert len(some.shell.L) < some.shell.windows
-    assert np.isclose(some.shell.xi.sum(), some.shell.windows)
+    # measured 0
+    assert np.isclose(some.shell.xi.sum(), some.shell.windows, rtol=5e-15, atol=0)
     rest = some.rest_state().getArray().reshape(-1, 3)
     f = np.zeros_like(rest)
     some.shell.add_gradient(rest @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]).T

@@ -66,13 +66,13 @@ def test_closed_mass_and_energy_are_the_open_twins_folded():
     np.add.at(m_twin, (twin.conn[:, :, None], twin.conn[:, None, :]),
               twin.mass_elements())
     # measured 1.7e-16
-    assert np.abs(m_closed - F.T @ m_twin @ F).max() < 5e-15 * np.abs(m_closed).max()
+    assert np.abs(m_closed - F.T @ m_twin @ F).max() < 1e-15 * np.abs(m_closed).max()
     x = X + 0.1 * np.random.default_rng(3).normal(size=X.shape)
     # measured 0
     assert abs(closed.energy(x) - twin.energy(F @ x)) < 2e-15 * twin.energy(F @ x)
-    for kind in KINDS:
+    for kind in KINDS:  # measured 5.7e-17 of the largest
         assert np.allclose(gradient(closed, kind)(x), F.T @ gradient(twin, kind)(F @ x),
-                           rtol=1e-12, atol=1e-12 * np.abs(gradient(twin)(F @ x)).max())
+                           rtol=0, atol=1e-15 * np.abs(gradient(twin)(F @ x)).max())
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -141,9 +141,8 @@ def test_tube_volume_embeds_the_yarns_exactly_across_the_seam(tube):
     assert vol.periodic and vol.domain[0] == vol.n1
     s1 = emb.params[0]
     assert s1.min() < 0.5 and s1.max() > vol.n1 - 0.5       # points all round
-    # measured 3.3e-16
     assert np.all(emb.vals >= 0)
-    assert np.allclose(emb.vals.sum(axis=1), 1, atol=0, rtol=5e-15)  # measured 3.3e-16
+    assert np.allclose(emb.vals.sum(axis=1), 1, atol=0, rtol=2e-15)  # measured 2.2e-16
     eps = gather(COMM, red.full_state(red.rest_state()))
     assert np.abs(eps - fab.X.ravel()).max() < 2e-13 * fab.radius  # measured 1.4e-14
 
@@ -172,4 +171,5 @@ def test_tube_started_turned_falls_rigidly(kind):
     moved = gather(COMM, system.full_state(x)).reshape(-1, 3) - \
         fab.start_points().reshape(-1, 3)
     drop = -9.81 * 1e-6 * 15
-    assert np.allclose(moved, [0, drop, 0], rtol=0, atol=1e-9 * abs(drop))
+    # measured 4.6e-11 of the drop (2 ranks 1.2e-12)
+    assert np.allclose(moved, [0, drop, 0], rtol=0, atol=4e-10 * abs(drop))

@@ -75,8 +75,8 @@ def test_weights_are_a_partition_of_unity():
     assert np.allclose(vals.sum(axis=1), 1.0, rtol=0, atol=3e-15)  # measured 2.2e-16
     assert cols.min() >= 0 and cols.max() < V.size
     assert all(len(np.unique(row)) == 32 for row in cols[:20])
-    # measured 0
-    assert np.allclose(fit(V, cols, vals), V.points(*t.T), rtol=0, atol=7e-15)
+    # measured 0 (points up to 3.0)
+    assert np.allclose(fit(V, cols, vals), V.points(*t.T), rtol=0, atol=2e-15)
 
 
 def test_jacobian_matches_finite_differences():
@@ -173,7 +173,7 @@ def test_torsion_keeps_distance_to_axis(n1, tol):
     t = random_parameters(V)
     t[:250, 0] = rng.integers(0, n1 - 2, 250)        # junctions s₁ ∈ ℤ: exact
     x, y = V.points(*t.T), W.points(*t.T)
-    assert np.allclose(y[:, 0], x[:, 0], rtol=0, atol=7e-15)  # measured 0
+    assert np.array_equal(y[:, 0], x[:, 0])   # the twist leaves the nets' x as they are
     th = np.radians(90) * (x[:, 0] - c[0]) / L
     rot = np.stack([np.cos(th), -np.sin(th), np.sin(th), np.cos(th)], -1)
     ideal = c[1:] + np.einsum("nij,nj->ni", rot.reshape(-1, 2, 2), x[:, 1:] - c[1:])
@@ -272,6 +272,6 @@ def test_example_volume_encloses_the_15x30_jersey():
     cols, vals = V.weights(*V.embed(P))
     assert np.allclose(fit(V, cols, vals), P, rtol=0, atol=1e-15)
     expected = BoundingVolume.around(P, 5, 5, jersey.radius)
-    # measured 4.3e-19
-    assert np.allclose(V.net, expected.net, rtol=0, atol=5e-16), (
+    # measured 0 (4.3e-19 before)
+    assert np.allclose(V.net, expected.net, rtol=0, atol=1e-15 * np.abs(V.net).max()), (
         "meshes/volume_5x5x2.vtu is stale; regenerate it (see module docstring)")
