@@ -228,7 +228,7 @@ def test_reduced_model_is_exact_in_the_range_of_gamma(name):
                        np.tile(v, red.embedding.volume.size))
         ef, er = gather(COMM, xf), gather(COMM, red.full_state(xr))
         # measured 1.6e-13 r on one rank, 2.1e-10 to 2.7e-10 r on two
-        assert np.allclose(ef, er, rtol=0, atol=5e-10 * fab.radius)
+        assert np.allclose(ef, er, rtol=0, atol=2e-9 * fab.radius)
         assert np.abs(ef - fab.X.ravel()).max() > 1e-7  # it moved: 1.5e-7 m
     finally:
         red.destroy()
