@@ -44,9 +44,11 @@ def test_assembled_forces_and_stiffness_match_finite_differences():
     assert K.isSymmetric(1e-10 * K.norm())
 
 
-@pytest.mark.parametrize("integrator,dt", [(SymplecticEuler, 5e-7),
-                                           (BackwardEuler, 1e-3)])
-def test_free_fall_follows_half_g_t_squared_and_keeps_shape(integrator, dt):
+# xtol in yarn radii, vtol relative: measured 6.1e-15 r, 1.8e-8 (symplectic)
+# and 5.9e-13 r, 1.2e-13 (backward Euler)
+@pytest.mark.parametrize("integrator,dt,xtol,vtol", [
+    (SymplecticEuler, 5e-7, 4e-14, 1e-7), (BackwardEuler, 1e-3, 4e-12, 1e-12)])
+def test_free_fall_follows_half_g_t_squared_and_keeps_shape(integrator, dt, xtol, vtol):
     fab = jersey(2, 2)
     g, n = 9.81, 20
     model = FullModel(COMM, fab, Material(EA=5.0, EI=1e-6, gravity=g))
@@ -55,15 +57,16 @@ def test_free_fall_follows_half_g_t_squared_and_keeps_shape(integrator, dt):
     disp = gather(COMM, x).reshape(-1, 3) - X
     # both schemes: v_n = −g n h, y_n = −g h² n(n + 1)/2 for a rigid fall
     drop = -g * dt**2 * n * (n + 1) / 2
-    assert np.allclose(disp[:, 1], drop, rtol=1e-7, atol=0)
-    assert np.abs(disp[:, [0, 2]]).max() < 1e-12 * fab.radius + 1e-9 * abs(drop)
+    assert np.allclose(disp[:, 1], drop, rtol=0, atol=xtol * fab.radius)
+    assert np.abs(disp[:, [0, 2]]).max() < xtol * fab.radius
     assert np.isclose(drop, -0.5 * g * (n * dt) ** 2, rtol=0.06)   # O(h) scheme
-    assert np.allclose(gather(COMM, v).reshape(-1, 3)[:, 1], -g * n * dt, rtol=1e-7)
+    assert np.allclose(gather(COMM, v).reshape(-1, 3)[:, 1], -g * n * dt, rtol=vtol, atol=0)
 
 
-@pytest.mark.parametrize("integrator,dt", [(SymplecticEuler, 5e-7),
-                                           (BackwardEuler, 1e-4)])
-def test_linear_momentum_conserved_without_gravity(integrator, dt):
+# ptol relative to Σ|m v|: measured 1.5e-11 (symplectic), 3.4e-14 (backward)
+@pytest.mark.parametrize("integrator,dt,ptol", [(SymplecticEuler, 5e-7, 1e-10),
+                                                (BackwardEuler, 1e-4, 3e-13)])
+def test_linear_momentum_conserved_without_gravity(integrator, dt, ptol):
     fab = jersey(2, 1)
     model = FullModel(COMM, fab, Material(EA=2.0, EI=1e-6, gravity=0.0))
     rng = np.random.default_rng(3)
@@ -81,7 +84,7 @@ def test_linear_momentum_conserved_without_gravity(integrator, dt):
     scale = np.abs(gather(COMM, m)).sum()
     # the constraint rows sum to zero up to the round-off of the spline
     # weights (Σ N_i(s) = 1 in floating point), times the contact forces
-    assert np.allclose(p, p0, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(p, p0, rtol=0, atol=ptol * scale)
     assert np.abs(gather(COMM, x) - gather(COMM, x0)).max() > 1e-9   # it moved
 
 
@@ -107,7 +110,7 @@ def test_catenary_settles_to_analytic_sag():
     assert sag == pytest.approx(catenary_sag(L, S), rel=0.02)
     arc_sag = -bspline.curve_points(fab.X, s)[:, 1].min()
     assert abs(arc_sag - sag) > 0.02 * sag              # the arc did move
-    assert v.norm() < 1e-6                              # and settled
+    assert v.norm() < 1e-7                              # and settled: measured 1.3e-8 m/s
 
 
 def test_cantilever_small_deflection_tip():

@@ -46,9 +46,10 @@ def test_generalized_alpha_free_fall_is_exact(rho_inf):
     x, v, _ = integrate(integ, model, n * dt)
     disp = gather(COMM, x).reshape(-1, 3) - fab.X.reshape(-1, 3)
     t = n * dt
-    assert np.allclose(disp[:, 1], -0.5 * g * t**2, rtol=1e-9, atol=0)
-    assert np.abs(disp[:, [0, 2]]).max() < 1e-12
-    assert np.allclose(gather(COMM, v).reshape(-1, 3)[:, 1], -g * t, rtol=1e-9)
+    assert np.allclose(disp[:, 1], -0.5 * g * t**2, rtol=5e-14, atol=0)  # measured 7.3e-15
+    assert np.abs(disp[:, [0, 2]]).max() < 3e-13 * fab.radius   # measured 5.0e-14 r
+    # measured 1.8e-12
+    assert np.allclose(gather(COMM, v).reshape(-1, 3)[:, 1], -g * t, rtol=1e-11, atol=0)
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +79,9 @@ def test_measured_order_against_a_converged_reference(converged, cls, steps, slo
     model, ref = converged
     errors = [np.abs(gather(SELF, integrate(cls(model, h), model, 0.02)[0]) - ref).max()
               for h in steps]
+    # measured within 4.8e-3 of the slopes above
     assert np.polyfit(np.log(steps), np.log(errors), 1)[0] == pytest.approx(slope,
-                                                                           abs=0.15)
+                                                                           abs=0.03)
 
 
 def test_constraints_hold_to_newton_tolerance_under_step_control():
@@ -192,7 +194,7 @@ def test_position_history_estimate_is_exact_for_a_cubic():
     e = np.zeros(1)
     # a method with local error c h³ ε⃛ = 0.1 h³ · 6 lands here:
     assert hist.estimate(np.array([exact_next + 0.6 * h**3]), h, e)
-    assert e[0] == pytest.approx(0.6 * h**3, rel=4e-14)    # measured 3.5e-15
+    assert e[0] == pytest.approx(0.6 * h**3, rel=2e-14, abs=0)    # measured 3.5e-15
 
 
 @pytest.mark.parametrize("method", [BackwardEuler, BDF2, GeneralizedAlpha])

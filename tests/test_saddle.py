@@ -70,7 +70,7 @@ def test_values_in_place_keep_one_analysis(model, options):
         jacobian(model, scale=scale).copy(A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         saddle.update()
         _, res = solve(saddle, ksp)
-        assert res < 3e-7    # measured 2.8e-8 (K's condition number is ~1e10)
+        assert res < 3e-7    # measured 1.3e-8, 2 ranks 3.0e-8 (K's condition number is ~1e10)
     assert sym.getPerfInfo()["count"] - n0 == 1
     assert num.getPerfInfo()["count"] - m0 == 3
     saddle.destroy()
@@ -96,7 +96,7 @@ def test_update_writes_A_C_and_Ct_where_they_belong(model, options):
     expect = to_scipy(fresh).toarray()
     for M, s in ((saddle.K, 0.0), (saddle.P, 1.0)):
         D = to_scipy(M).toarray() - expect + s * shift
-        assert np.abs(D).max() <= 1e-14 * np.abs(expect).max()
+        assert np.abs(D).max() == 0.0        # values copied, not computed: exact
     model.constraint_jacobian(model.rest_state())
     saddle.destroy()
 
@@ -119,7 +119,7 @@ def test_regularized_preconditioner_solves_K(model, options):
     assert r1 < 1e-6 and r2 < 1e-8
     assert k2.getType() == "gmres" and k2.getIterationNumber() <= 8
     z2.axpy(-1.0, z1)
-    assert z2.norm() <= 1e-10 * z1.norm()  # measured 9.2e-12
+    assert z2.norm() <= 1e-10 * z1.norm()  # measured 2.3e-12, 2 ranks 3.0e-11
     for s in (direct, reg):
         s.destroy()
 
@@ -188,7 +188,7 @@ def test_the_ordering_is_qamd_on_one_rank_unless_told(model, options):
         used = ksp.getPC().getFactorMatrix().getMumpsInfog(7)
         for obj in (z, ksp, saddle):
             obj.destroy()
-        assert rel < 1e-10
+        assert rel < 5e-11                   # measured 3.9e-12, 2 ranks 7.8e-12
         return used
 
     assert ordering("t_ord_") == (ORDERING if COMM.size == 1 else 2) == \
@@ -269,6 +269,6 @@ def test_course_schwarz_solves_K(model, options, courses, overlap):
     else:
         assert 1 < ksp.getIterationNumber() < 300        # random b, rtol 1e-12
     z2.axpy(-1.0, z1)
-    assert z2.norm() <= 1e-10 * z1.norm()  # measured 9.2e-12
+    assert z2.norm() <= 1e-10 * z1.norm()  # measured 2.4e-12, 2 ranks 3.0e-11
     for s in (direct, schwarz):
         s.destroy()
