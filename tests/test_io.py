@@ -102,4 +102,4 @@ def test_tubes_are_drawn_one_yarn_diameter_wide(tmp_path, view):
     widths = sorted(c.get_linewidth()[0] for c in ax.collections)
     plt.close(fig)
     # measured 1.5e-16
-    assert widths == pytest.approx([points, 1.15 * points], rel=5e-15)
+    assert widths == pytest.approx([points, 1.15 * points], rel=5e-15, abs=0)
