@@ -62,7 +62,12 @@ while the pairs within the band and half the margin are among them
 ``missed``) until the model rebuilds its pattern.
 
 Every rank evaluates the whole set on all control points (gathered) and
-keeps its own rows, so results do not depend on the number of ranks.
+keeps its own rows, so results do not depend on the number of ranks. The
+toolkit runs on one thread: its parallel sums add in an order that changes
+from run to run, and a path that branches (a relaxation, which has more than
+one equilibrium) then ends somewhere else each time (the 8 × 8 jersey's
+relaxation: k_w 4.87 to 5.62 over four runs of one command; the same to the
+last digit on one thread, in the same time).
 """
 
 import ipctk
@@ -73,6 +78,8 @@ from scipy.spatial import cKDTree
 from knitfem.yarn import bspline
 
 __all__ = ["YarnContact", "segment_distance"]
+
+ipctk.set_num_threads(1)
 
 
 def _fortran(a):
