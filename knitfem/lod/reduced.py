@@ -315,15 +315,26 @@ class EmbeddedModel:
 
     def project(self, eps, q):
         """Mass-weighted least squares q = (ΓᵀMΓ)⁻¹ Γᵀ M ε (yarn level → this
-        model), by a Cholesky factorisation of ΓᵀMΓ (``-<kind>_project_``)."""
+        model), by a Cholesky factorisation of ΓᵀMΓ (``-<kind>_project_``);
+        where Γ may have a null space (``null_space``, the mixed model's Γ_mix)
+        MUMPS detects null pivots (ICNTL(24), as ``solvers.saddle.saddle_ksp``
+        does for the model's own systems)."""
         if getattr(self, "_proj", None) is None:
+            prefix = f"{self.kind}_project_"
             self._proj = PETSc.KSP().create(comm=self.comm)
-            self._proj.setOptionsPrefix(f"{self.kind}_project_")
+            self._proj.setOptionsPrefix(prefix)
             self._proj.setOperators(self.M)
             self._proj.setType("preonly")
-            self._proj.getPC().setType("cholesky")
-            self._proj.getPC().setFactorSolverType("mumps")
+            pc = self._proj.getPC()
+            pc.setType("cholesky")
+            pc.setFactorSolverType("mumps")
             self._proj.setFromOptions()
+            if getattr(self, "null_space", False) and \
+                    pc.getType() in ("lu", "cholesky") and \
+                    pc.getFactorSolverType() == "mumps" and \
+                    not PETSc.Options(prefix).hasName("mat_mumps_icntl_24"):
+                pc.setFactorSetUpSolverType()
+                pc.getFactorMatrix().setMumpsIcntl(24, 1)
         Me = self.full.M.createVecLeft()
         self.full.M.mult(eps, Me)
         rhs = self.M.createVecRight()
