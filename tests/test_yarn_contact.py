@@ -226,6 +226,36 @@ def test_tangent_pattern_follows_the_pairs():
     full.destroy()
 
 
+def test_a_restart_takes_the_pairs_and_the_list_it_had():
+    """``contact_state`` / ``set_contact_state`` (a checkpoint's): a model
+    continued at a state lays its tangent out on the pairs it had, not on
+    those of that state, asks for a new Newton matrix, and makes its Verlet
+    list where the first one was made, so that its step filter, which looks
+    beyond the list by the moves since then, cuts as the first one's."""
+    fab = crossing(gap=3.0)
+    first, again = (FullModel(COMM, fab, Material(gravity=0.0), yarn_contact=True)
+                    for _ in range(2))
+    rest, x = first.rest_state(), first.rest_state()
+    P = band_state(YarnContact(fab, Material().EI), fab, 3.0)
+    lo, hi = x.getOwnershipRange()
+    x.getArray()[:] = P.ravel()[lo:hi]
+    first.begin_step(x)
+    first.stiffness(x)                     # pairs and list around x
+    again.stiffness(rest)                  # none at rest
+    assert len(again.yarn_contact.pairs) == 0 < len(first.yarn_contact.pairs)
+    again.set_contact_state(first.contact_state())
+    assert again.begin_step(rest)          # a new Newton matrix
+    assert np.array_equal(again.stiffness(rest).getValuesCSR()[1],
+                          first.stiffness(rest).getValuesCSR()[1])
+    A, B = first.yarn_contact, again.yarn_contact
+    assert np.array_equal(A.candidates_at, B.candidates_at)
+    X, move = fab.X.reshape(-1, 3), np.zeros_like(P)
+    move[:, 2] = np.linspace(-4 * R, 4 * R, len(P))
+    assert A.step_fraction(X, X + move) == B.step_fraction(X, X + move) < 1
+    for m in (first, again):
+        m.destroy()
+
+
 def test_option_turns_it_off():
     """-knit_yarn_contact on|off (on by default)."""
     from knitfem.cli.commands import model_options

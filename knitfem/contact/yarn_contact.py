@@ -506,6 +506,20 @@ class YarnContact:
         a, b = np.divmod(self.pairs, self.nseg_total)
         return np.concatenate([conn[a], conn[b]], axis=1)
 
+    def restore(self, pairs, anchor):
+        """Continue from a saved state: the tangent's segment ``pairs`` and
+        the Verlet list made again at the samples ``anchor`` where it was
+        made (None: at the next call), so that the step filter, which looks
+        beyond the list by the moves since its anchor, cuts as it did."""
+        self.pairs = np.asarray(pairs, dtype=np.int64)
+        self.built = self.moved_at = None
+        self.candidates_at = None
+        if anchor is not None:
+            V = np.asarray(anchor, dtype=float)
+            self.candidate_edges = self.close_edges(
+                V, self.dmin + self.dhat + self.margin + self.skin, distances=True)
+            self.candidates_at = V.copy()
+
     def fits(self, P):
         """Whether the segment pairs within the band and half the margin at P
         are all in ``pairs`` (the tangent's pattern still holds them)."""

@@ -147,6 +147,7 @@ class FullModel:
                 if contacts == "sliding" else None
             self.window_moves = 0        # times the sliding windows moved
             self._relayout = False       # C's pattern changed since the last step
+            self._pairs_given = False    # the tangent's pairs restored, not found
             if self.sliding is not None:
                 crossings = self.sliding
             self.constraints = cons_asm = ConstraintAssembly(comm, lay, crossings,
@@ -231,6 +232,26 @@ class FullModel:
             return relayout
         self.drop_tangent()
         return True
+
+    def contact_state(self):
+        """What of the yarn contact a run's path depends on, for a checkpoint:
+        the tangent's pairs and the Verlet list's anchor (None without yarn
+        contact; the same on every rank)."""
+        yc = self.yarn_contact
+        if yc is None:
+            return None
+        return dict(pairs=yc.pairs.copy(), anchor=None if yc.candidates_at is None
+                    else yc.candidates_at.copy())
+
+    def set_contact_state(self, state):
+        """Continue with a checkpoint's ``contact_state``: the tangent's
+        pattern is laid out on its pairs at the next ``stiffness`` (and the
+        next ``begin_step`` asks for a new Newton matrix), its Verlet list
+        made at its anchor."""
+        if self.yarn_contact is None or state is None:
+            return
+        self.yarn_contact.restore(state["pairs"], state["anchor"])
+        self._tangent, self._relayout, self._pairs_given = None, True, True
 
     def move_windows(self, x, first=None):
         """Move the sliding crossings' windows to start at the segments
@@ -404,7 +425,9 @@ class FullModel:
         with EV_ASSEMBLY:
             sets = [self.conn, cons_asm.element_cols()]
             if self.yarn_contact is not None:
-                self.yarn_contact.relayout(self.all_points(x))
+                if not self._pairs_given:
+                    self.yarn_contact.relayout(self.all_points(x))
+                self._pairs_given = False
                 sets.append(self.yarn_contact.pair_points(self.all_conn))
             tangent = ElementPattern(sets, lay.cp_start, lay.ncp_local)
             indptr3, indices3, (slot3_yarn, slot3_contacts, *_) = \

@@ -342,7 +342,8 @@ class Simulation:
                      steps_taken=self.steps_taken, energy=self.energy,
                      restarted_from=self.restarted_from,
                      min_yarn_gap=self.gaps and (self.gaps.smallest, self.gaps.time),
-                     sliding=self.full.constraints.sliding_parameters())
+                     sliding=self.full.constraints.sliding_parameters(),
+                     yarn_contact=self.full.contact_state())
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
                                  extra, self.frames) if self.comm.rank == 0 else None
@@ -390,6 +391,8 @@ class Simulation:
         self.t, self.step_count = ckpt.t, ckpt.step
         if ckpt.extra.get("sliding") is not None:     # where crossings had slid
             self.full.set_sliding_parameters(ckpt.extra["sliding"])
+        if self.full is self.system:          # the yarn contact's pairs and list
+            self.full.set_contact_state(ckpt.extra.get("yarn_contact"))
         self.stats.update(ckpt.stats)
         self.frames = []
         if self.comm.rank == 0 and self.output is not None:   # drawn again
