@@ -117,6 +117,29 @@ def test_crossings_numpy_hessian_matches_gradient_differences():
     assert np.abs(H - H.transpose(0, 2, 1)).max() < 4e-15 * np.abs(H).max()
 
 
+def test_a_crossing_held_at_its_window_end_has_the_derivatives_of_its_g():
+    """Where s* is held at an end of its window (yarn b slid along itself
+    past the window, its side clamped) g is that of a fixed s_b and a free
+    s_a: C and ∇²g by central differences of g and C, whose states solve s*
+    again (measured 1.1e-11 and 7.6e-11 relative at h = 1e-3, O(h²); 0.84
+    and 1.1 with the interior's η and S kept there)."""
+    c = sliding.crossings(two_straight_yarns())
+    P = c.X.copy()
+    P[:, c.width:, 1] += 2.5e-3                  # yarn b 2.5 segments along y
+    rng = np.random.default_rng(5)
+    P += 2e-5 * rng.standard_normal(P.shape)
+    dP = 1e-5 * rng.standard_normal(P.shape)
+    assert c.held(c.solve(P)).tolist() == [[False, True]]
+    grad, H = c.gradients(P)[:, 0].reshape(c.count, -1), c.hessians(P)
+    h = 1e-3
+    dg = (c.values(P + h * dP) - c.values(P - h * dP))[:, 0] / (2 * h)
+    exact = np.einsum("na,na->n", grad, dP.reshape(c.count, -1))
+    assert abs(dg - exact).max() < 1e-10 * abs(exact).max()
+    fd = (c.gradients(P + h * dP) - c.gradients(P - h * dP))[:, 0] / (2 * h)
+    exact = np.einsum("nab,nb->na", H, dP.reshape(c.count, -1))
+    assert np.abs(fd.reshape(c.count, -1) - exact).max() < 5e-10 * np.abs(exact).max()
+
+
 def two_straight_yarns(delta=1e-3, spacing=1e-3, ncp=16):
     """Yarn 0 along x, yarn 1 along y at height delta, crossing at their middles."""
     t = (np.arange(ncp) - (ncp - 1) / 2) * spacing

@@ -47,6 +47,9 @@ segments either side of the segment of s), so that C(ε) keeps one sparsity
 pattern while s* moves up to m segments. Inside a step's Newton iterations
 s* is held in its window; a step that ends with a crossing at the end of
 its window is refused (``FullModel.tunnelled``: a smaller step is tried).
+A side held at its window's end does not move with ε: the other side solves
+its own equation alone, and g's derivatives are those of a fixed s on the
+held side (its equation leaves A, so its η and its row of S vanish).
 Between steps a window whose s has strayed more than m/2 segments from its
 middle (for m = 1: s left the middle segment) moves along its yarn to be
 centred on s again (``centred``, ``move_windows``; round a closed yarn, up
@@ -219,11 +222,15 @@ class SlidingCrossings:
         rel = self._along(s - self.first)
         return self.first + np.clip(rel, 0.0, self.width - 3.0 - EDGE)
 
+    def held(self, s):
+        """Sides (n, 2) whose s lies on an end of its window, where ``clamp``
+        holds it."""
+        rel = self._along(self.clamp(s) - self.first)
+        return (rel <= 0.0) | (rel >= self.width - 3.0 - EDGE)
+
     def at_edge(self):
         """Crossings (indices) whose last s* lies on an end of its window."""
-        rel = self._along(self.clamp(self.s_star) - self.first)
-        return np.flatnonzero(((rel <= 0.0) | (rel >= self.width - 3.0 - EDGE))
-                              .any(axis=1))
+        return np.flatnonzero(self.held(self.s_star).any(axis=1))
 
     def solve(self, P):
         """s* (n, 2): the crossing c = (r·T_a, r·T_b) = 0 reached from the
@@ -239,8 +246,17 @@ class SlidingCrossings:
         for _ in range(NEWTON_STEPS):
             r, _, rs = self._geometry(P, s, False)[:3]
             c = np.einsum("nd,njd->nj", r, T)
-            ds = -np.einsum("nij,nj->ni", inverse2(np.einsum("nid,njd->nji", rs, T)), c)
+            A = np.einsum("nid,njd->nji", rs, T)
+            ds = -np.einsum("nij,nj->ni", inverse2(A), c)
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
+            # a side held at its window's end leaves the other side its own
+            # equation, c_j = 0 for s_j alone
+            held = self.held(new)
+            n, k = np.nonzero(held[:, ::-1] & ~held)   # k free, the other held
+            if len(n):
+                free = s.copy()
+                free[n, k] += np.clip(-c[n, k] / A[n, k, k], -MAX_STEP, MAX_STEP)
+                new[n, k] = self.clamp(free)[n, k]
             ds, s = new - s, new
             if not ds.size or np.abs(ds).max() < NEWTON_TOL:
                 break
@@ -286,6 +302,15 @@ class SlidingCrossings:
         c_eps = (w[:, None, :, None] * T[:, :, None, :]
                  + chi[..., None] * r[:, None, None, :]).reshape(n, 2, 3 * K)
         G_s = np.einsum("nd,nid->ni", r, rs) / self.delta[:, None]
+        held = self.held(self.s_star)
+        if held.any():
+            # a side held at its window's end does not move with ε: its
+            # equation leaves A (its row and column become the identity's),
+            # so that its η and its row of S = ∂s*/∂ε vanish
+            A = np.where(held[:, None, :] | held[:, :, None], 0.0, A)
+            A[:, [0, 1], [0, 1]] += held
+            c_eps = np.where(held[:, :, None], 0.0, c_eps)
+            G_s = np.where(held, 0.0, G_s)
         eta = -np.einsum("nji,nj->ni", inverse2(A), G_s)
         return r, w, rs, ws, rss, T, chi, A, c_eps, eta
 
