@@ -43,8 +43,8 @@ from .aij import OwnAIJ, storage_pattern, storage_values
 from .libpetsc import Int, library
 from .progress import note
 
-__all__ = ["SaddlePoint", "saddle_ksp", "SolverFailure", "solve_saddle",
-           "ksp_failure", "failure_or_retry", "pc_failure"]
+__all__ = ["SaddlePoint", "saddle_ksp", "detect_null_pivots", "SolverFailure",
+           "solve_saddle", "ksp_failure", "failure_or_retry", "pc_failure"]
 
 
 EV_REFACTOR = PETSc.Log.Event("knitMumpsRefactor")
@@ -338,6 +338,16 @@ def regularization_option(prefix, comm):
                         nonnegative=True)
 
 
+def detect_null_pivots(pc, prefix):
+    """Have a MUMPS factorisation of ``pc`` (set from its options) detect
+    null pivots (ICNTL(24) = 1) and solve on the rest, unless
+    -<prefix>mat_mumps_icntl_24 says otherwise (``saddle_ksp``)."""
+    if pc.getType() in ("lu", "cholesky") and pc.getFactorSolverType() == "mumps" \
+            and not PETSc.Options(prefix).hasName("mat_mumps_icntl_24"):
+        pc.setFactorSetUpSolverType()
+        pc.getFactorMatrix().setMumpsIcntl(24, 1)
+
+
 def saddle_ksp(saddle, prefix, null_pivots=False):
     """A KSP on the saddle point, then the command line. By default a direct
     solve: MUMPS LDLᵀ of the symmetric indefinite K (2×2 pivots; 2.2× faster
@@ -396,11 +406,8 @@ def saddle_ksp(saddle, prefix, null_pivots=False):
             not options.hasName("mat_mumps_cntl_1"):
         pc.setFactorSetUpSolverType()
         pc.getFactorMatrix().setMumpsCntl(1, 0.0)   # P is quasi-definite
-    if null_pivots and pc.getType() in ("lu", "cholesky") and \
-            pc.getFactorSolverType() == "mumps" and \
-            not options.hasName("mat_mumps_icntl_24"):
-        pc.setFactorSetUpSolverType()
-        pc.getFactorMatrix().setMumpsIcntl(24, 1)
+    if null_pivots:
+        detect_null_pivots(pc, prefix)
     if pc.getType() == "asm" and saddle.constrained and saddle.blocks and \
             not options.hasName("pc_asm_overlap"):
         pc.setASMLocalSubdomains(*_course_subdomains(saddle, prefix))

@@ -305,12 +305,15 @@ class YarnContact:
         two edges close in by at most twice the largest move)."""
         V0 = self.candidates_at
         if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
-            self.candidate_edges = self.close_edges(
-                V, self.dmin + self.dhat + self.margin + self.skin, distances=True)
-            self.candidates_at = V.copy()
-            self.moved_at = None
+            self._make_list(V)
             self.candidate_builds += 1
         return self.candidate_edges
+
+    def _make_list(self, V):
+        """The Verlet list (``_candidates``) made at the samples V."""
+        self.candidate_edges = self.close_edges(
+            V, self.dmin + self.dhat + self.margin + self.skin, distances=True)
+        self.candidates_at, self.moved_at = V.copy(), None
 
     def energy(self, P):
         """E_y at all control points P (ncp_total, 3)."""
@@ -512,13 +515,9 @@ class YarnContact:
         made (None: at the next call), so that the step filter, which looks
         beyond the list by the moves since its anchor, cuts as it did."""
         self.pairs = np.asarray(pairs, dtype=np.int64)
-        self.built = self.moved_at = None
-        self.candidates_at = None
+        self.built = self.moved_at = self.candidates_at = None
         if anchor is not None:
-            V = np.asarray(anchor, dtype=float)
-            self.candidate_edges = self.close_edges(
-                V, self.dmin + self.dhat + self.margin + self.skin, distances=True)
-            self.candidates_at = V.copy()
+            self._make_list(np.asarray(anchor, dtype=float))
 
     def fits(self, P):
         """Whether the segment pairs within the band and half the margin at P

@@ -31,6 +31,7 @@ from knitfem.model.full import EV_FORCES, applied_forces, max_over_ranks
 from knitfem.errors import KnitError
 from knitfem.lod.grouped_tangent import GroupedTangent
 from knitfem.lod.volume import BoundingVolume
+from solvers.saddle import detect_null_pivots
 
 __all__ = ["Embedding", "ReducedModel", "embedding_from_options", "stretch_options"]
 
@@ -317,8 +318,8 @@ class EmbeddedModel:
         """Mass-weighted least squares q = (ΓᵀMΓ)⁻¹ Γᵀ M ε (yarn level → this
         model), by a Cholesky factorisation of ΓᵀMΓ (``-<kind>_project_``);
         where Γ may have a null space (``null_space``, the mixed model's Γ_mix)
-        MUMPS detects null pivots (ICNTL(24), as ``solvers.saddle.saddle_ksp``
-        does for the model's own systems)."""
+        MUMPS detects null pivots (``solvers.saddle.detect_null_pivots``, as
+        for the model's own systems)."""
         if getattr(self, "_proj", None) is None:
             prefix = f"{self.kind}_project_"
             self._proj = PETSc.KSP().create(comm=self.comm)
@@ -329,12 +330,8 @@ class EmbeddedModel:
             pc.setType("cholesky")
             pc.setFactorSolverType("mumps")
             self._proj.setFromOptions()
-            if getattr(self, "null_space", False) and \
-                    pc.getType() in ("lu", "cholesky") and \
-                    pc.getFactorSolverType() == "mumps" and \
-                    not PETSc.Options(prefix).hasName("mat_mumps_icntl_24"):
-                pc.setFactorSetUpSolverType()
-                pc.getFactorMatrix().setMumpsIcntl(24, 1)
+            if getattr(self, "null_space", False):
+                detect_null_pivots(pc, prefix)
         Me = self.full.M.createVecLeft()
         self.full.M.mult(eps, Me)
         rhs = self.M.createVecRight()
