@@ -259,8 +259,8 @@ class ConstraintAssembly:
 
     def sliding_parameters(self):
         """Every sliding crossing's committed state
-        (``SlidingCrossings.state``: s, σ, windows, slide so far, χ),
-        (ncontacts, 10 + 4W) on every rank, for a checkpoint or to move the
+        (``SlidingCrossings.state``: s, σ, windows, slide so far, locks, χ),
+        (ncontacts, 11 + 4W) on every rank, for a checkpoint or to move the
         windows (collective); None for fixed crossings."""
         if self.diagonal_curvature:
             return None

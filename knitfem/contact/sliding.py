@@ -62,7 +62,13 @@ follow a crossing that slides along a loop: at an accepted state where s*
 is more than half a segment from where they were taken, they are taken
 again there, T_j = t_j − β_j r with β_j = r·t_j / r·r, so that r·T = 0
 still holds at that state: s* and g do not move, only g's gradient tilts by
-O(η) (``commit``; the summary counts these re-anchorings).
+O(η) (``commit``; the summary counts these re-anchorings). Where the two yarns
+come to run nearly parallel (θ ≲ 11°, as at a relaxed knit's edge) the
+crossing point along them is ill-defined: A loses rank and the search for
+s* stalls short of c = 0, so the gradient it gives is wrong. Such a
+crossing is locked, held at its s like a fixed one, until the yarns part
+again (θ ≳ 18°), when it is re-anchored there and slides on (``commit``;
+``locked``).
 """
 
 from dataclasses import dataclass, fields
@@ -79,6 +85,9 @@ NEWTON_STEPS = 30          # crossing conditions: quadratic, 2–3 steps near s
 NEWTON_TOL = 1e-12         # |Δs| in segments (≈ 2e-15 m on the default jersey)
 MAX_STEP = 0.25            # largest Newton step in segments
 REANCHOR = 0.5            # slide [segments] after which the reference tangents move
+LOCK = 100.0               # condition of the tangents' Gram matrix that locks a crossing
+UNLOCK = 40.0              # ... and below which a locked crossing slides again
+STALL = 1e-8               # |c| / (|T| δ) of a search for s* that stalled: locks it
 EDGE = 1e-9                # a window's last parameter short of its end (its segment)
 
 
@@ -117,8 +126,9 @@ class SlidingCrossings:
     of the windows (arc lengths); sT (n, 2) the parameters σ where the
     reference tangents were taken, chi (n, 2, 2W) their weights; base (n, 2)
     the s where the windows last moved and slid (n, 2) the signed arc length
-    along the rest yarns from s0 to base. ``s_star`` holds the last
-    evaluation's s*.
+    along the rest yarns from s0 to base; locked (n,) the crossings held at
+    their s while their yarns run nearly parallel (``commit``). ``s_star``
+    holds the last evaluation's s*.
     """
 
     owner: np.ndarray
@@ -135,6 +145,7 @@ class SlidingCrossings:
     start: np.ndarray
     base: np.ndarray
     slid: np.ndarray
+    locked: np.ndarray
 
     rows = 1                      # scalar rows a crossing
     kind = "sliding"
@@ -228,6 +239,11 @@ class SlidingCrossings:
         rel = self._along(self.clamp(s) - self.first)
         return (rel <= 0.0) | (rel >= self.width - 3.0 - EDGE)
 
+    def frozen(self, s):
+        """Sides (n, 2) that do not move with ε: held at a window's end, or
+        of a locked crossing."""
+        return self.held(s) | self.locked[:, None]
+
     def at_edge(self):
         """Crossings (indices) whose last s* lies on an end of its window."""
         return np.flatnonzero(self.held(self.s_star).any(axis=1))
@@ -249,9 +265,10 @@ class SlidingCrossings:
             A = np.einsum("nid,njd->nji", rs, T)
             ds = -np.einsum("nij,nj->ni", inverse2(A), c)
             new = self.clamp(s + np.clip(ds, -MAX_STEP, MAX_STEP))
+            new[self.locked] = s[self.locked]
             # a side held at its window's end leaves the other side its own
             # equation, c_j = 0 for s_j alone
-            held = self.held(new)
+            held = self.frozen(new)
             n, k = np.nonzero(held[:, ::-1] & ~held)   # k free, the other held
             if len(n):
                 free = s.copy()
@@ -265,13 +282,35 @@ class SlidingCrossings:
 
     def commit(self, P):
         """Take the crossing at the points P (an accepted state) as the new
-        start s of the next evaluations; a crossing that has slid more than
+        start s of the next evaluations. A crossing that has slid more than
         ``REANCHOR`` segments from its reference parameters σ takes its
         reference tangents at s (``anchor``): on a loop the tangents turn as
-        the crossing slides, and A would lose rank. Returns how many were
-        re-anchored."""
+        the crossing slides, and A would lose rank.
+
+        Where the two yarns run nearly parallel at a crossing, its point
+        along them is ill-defined (A → the Gram matrix of t_a, t_b loses
+        rank, and the search for s* stalls short of c = 0): a crossing whose
+        Gram matrix's condition (1 + |cos θ|)/(1 − |cos θ|), θ the angle of
+        t_a and t_b, exceeds ``LOCK`` (θ ≈ 11°), or whose search stalled
+        (|c| > ``STALL`` |T| δ with neither side held at a window's end), is
+        locked, held at its s as a fixed crossing (``frozen``: g and its
+        derivatives those of a fixed s), and slides again, re-anchored at s,
+        where the condition falls below ``UNLOCK`` (θ ≈ 18°). Returns how
+        many were re-anchored."""
         self.s = self.solve(P).copy()
-        far = np.flatnonzero(np.abs(self.s - self.sT).max(axis=1) > REANCHOR)
+        r, _, rs = self._geometry(P, self.s, False)[:3]
+        t = rs / np.linalg.norm(rs, axis=-1, keepdims=True)
+        T = self._chords(P)
+        Tn = np.linalg.norm(T, axis=-1)
+        cos = np.abs(np.einsum("nd,nd->n", t[:, 0], t[:, 1]))
+        cond = (1 + cos) / np.maximum(1 - cos, 1e-300)
+        stalled = np.abs(np.einsum("nd,njd->nj", r, T)).max(axis=1) \
+            > STALL * (Tn.max(axis=1) * self.delta)
+        freed = self.locked & (cond < UNLOCK)
+        stalled &= ~self.locked & ~self.held(self.s).any(axis=1)
+        self.locked = (self.locked & ~freed) | (cond > LOCK) | stalled
+        far = np.flatnonzero(((np.abs(self.s - self.sT).max(axis=1) > REANCHOR)
+                              | freed) & ~self.locked)
         if far.size:
             self.anchor(P, far)
         self.solved_at = None
@@ -302,9 +341,9 @@ class SlidingCrossings:
         c_eps = (w[:, None, :, None] * T[:, :, None, :]
                  + chi[..., None] * r[:, None, None, :]).reshape(n, 2, 3 * K)
         G_s = np.einsum("nd,nid->ni", r, rs) / self.delta[:, None]
-        held = self.held(self.s_star)
+        held = self.frozen(self.s_star)
         if held.any():
-            # a side held at its window's end does not move with ε: its
+            # a side held at its window's end (or locked) does not move with ε: its
             # equation leaves A (its row and column become the identity's),
             # so that its η and its row of S = ∂s*/∂ε vanish
             A = np.where(held[:, None, :] | held[:, :, None], 0.0, A)
@@ -402,9 +441,11 @@ class SlidingCrossings:
         return moved
 
     def state(self):
-        """The committed state (n, 10 + 4W): s, σ, first, base, slid, χ."""
+        """The committed state (n, 11 + 4W): s, σ, first, base, slid, locked,
+        χ."""
         return np.concatenate([self.s, self.sT, self.first, self.base, self.slid,
-                               self.chi.reshape(self.count, -1)], axis=1)
+                               self.locked[:, None], self.chi.reshape(self.count, -1)],
+                              axis=1)
 
     def set_state(self, state, X):
         """Commit a ``state`` (windows, where they moved, with the rest
@@ -413,7 +454,8 @@ class SlidingCrossings:
         self.s, self.sT = state[:, 0:2].copy(), state[:, 2:4].copy()
         self.first = np.rint(state[:, 4:6]).astype(self.first.dtype)
         self.base, self.slid = state[:, 6:8].copy(), state[:, 8:10].copy()
-        self.chi = state[:, 10:].reshape(self.count, 2, -1).copy()
+        self.locked = state[:, 10] > 0.5
+        self.chi = state[:, 11:].reshape(self.count, 2, -1).copy()
         self.cols = window_cols(self.start, self.first, self.width, self.nseg,
                                 self.closed)
         self.X = X[self.cols]
@@ -474,7 +516,8 @@ def crossings(fabric, margin=1):
     X = fabric.X[cols]
     c = SlidingCrossings(np.asarray(ya), cols, first, np.ones(len(s0)), s0, s0, X,
                          s0.copy(), np.zeros((len(s0), 2, 2 * W)), nseg, closed,
-                         start, s0.copy(), np.zeros(s0.shape))
+                         start, s0.copy(), np.zeros(s0.shape),
+                         np.zeros(len(s0), bool))
     c.anchor(X, np.arange(len(s0)))
     if fabric.separation is not None:
         c.delta = np.full(len(s0), float(fabric.separation))

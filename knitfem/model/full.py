@@ -527,9 +527,11 @@ class FullModel:
         """``max_slide_m``, the largest arc length by which a sliding crossing
         has moved along one of its yarns from rest to the (accepted) state x,
         ``slide_reanchored``, how often a crossing's reference tangents
-        moved (``sliding.SlidingCrossings.commit``), and ``slide_window_moves``,
-        how often the windows moved and C's pattern was laid out again
-        (``move_windows``); {} for fixed crossings (collective)."""
+        moved (``sliding.SlidingCrossings.commit``), ``slide_locked``, how
+        many crossings are locked at x (their yarns nearly parallel there),
+        and ``slide_window_moves``, how often the windows moved and C's
+        pattern was laid out again (``move_windows``); {} for fixed crossings
+        (collective)."""
         if self.constraints.diagonal_curvature:
             return {}
         self.constraints.commit(x)
@@ -538,6 +540,8 @@ class FullModel:
             self.comm, float(slides.max()) if slides.size else 0.0),
             slide_reanchored=self.comm.tompi4py().allreduce(
                 self.constraints.reanchored),
+            slide_locked=self.comm.tompi4py().allreduce(
+                int(np.count_nonzero(self.constraints.local.locked))),
             slide_window_moves=self.window_moves)
 
     def strain(self, x):
