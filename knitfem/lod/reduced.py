@@ -607,8 +607,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             T.zero()
             yarns(T)
             if self.shell is not None:
-                for part in self.shell.hessian_parts(A):
-                    T.add(part)
+                self.shell.add_tangent(A, T)
             if self.contact is not None:
                 T.add(self.contact.hessian(A))
             self.K = T.assemble()
