@@ -384,7 +384,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         self.dense = (GroupedTangent(full.pattern, embedding.cols, embedding.vals, size)
                       if sampled is None and compiled and
                       (size <= DENSE_LIMIT or shell is not None) else None)
-        self.sparse = None
+        self.sparse = self.yarns = None
         if size > DENSE_LIMIT and (sampled is not None or shell is not None):
             from knitfem.lod.sparse_tangent import SparseTangent, scalar_pattern
 
@@ -566,7 +566,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             A = self._all(alpha)
             if self.sparse is not None:
                 return self._sparse_stiffness(
-                    A, self.sampled.sparse_tangent(A, ref))
+                    A, lambda T: self._yarns(T).add(self.sampled._values(A, ref)))
 
             def reduce(R):
                 self.sampled.tangent(A, R, ref)
@@ -582,7 +582,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.sparse is not None:         # the shell's, on a large volume
                 N = 3 * self.embedding.volume.size
                 R = self.dense(values, np.zeros((N, N)))
-                return self._sparse_stiffness(self._all(alpha), R)
+                return self._sparse_stiffness(self._all(alpha), lambda T: T.add_dense(R))
 
             def reduce(R):
                 self.dense(values, R)
@@ -600,19 +600,29 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
 
     def _sparse_stiffness(self, A, yarns):
         """Γᵀ K Γ on the fixed sparse pattern (``SparseTangent``): the yarn
-        elements' part ``yarns`` (scipy sparse, or dense), the shell's and
-        the contact set's added, every rank's summed."""
+        elements' part added by ``yarns(T)``, the shell's and the contact
+        set's added, every rank's summed."""
         T = self.sparse
         with EV_PTAP:
             T.zero()
-            (T.add_dense if isinstance(yarns, np.ndarray) else T.add)(yarns)
+            yarns(T)
             if self.shell is not None:
-                for part in self.shell.hessian_parts(A):
-                    T.add(part)
+                self.shell.add_tangent(A, T)
             if self.contact is not None:
                 T.add(self.contact.hessian(A))
             self.K = T.assemble()
         return self.K
+
+    def _yarns(self, T):
+        """The sampled elements' Γ_Sᵀ K_S Γ_S into T (``PatchProduct``), laid
+        out at the first call."""
+        from knitfem.lod.sparse_tangent import PatchProduct
+
+        if self.yarns is None or self.yarns.T is not T:
+            s, emb = self.sampled, self.embedding
+            self.yarns = PatchProduct(T, s.indptr3, s.indices3, emb.cols[s.points],
+                                      emb.vals[s.points])
+        return self.yarns
 
     def _dense_stiffness(self, reduce):
         """Γᵀ K Γ into R by ``reduce(R)`` over this rank's yarns, every rank's

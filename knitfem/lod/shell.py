@@ -121,6 +121,70 @@ class ShellStretch:
         t, f = self._forces(A)
         out += self.D.T @ (scale * f[:, None] * t)
 
+    def _patch_blocks(self, f):
+        """Σ_{q over P} f_q D_qᵀ D_q of every patch P of V, (patches, 32, 32)
+        on its columns ``keys``: a GEMM a patch."""
+        p, slot, order = self.where
+        fs = np.zeros(self.stack.shape[:2])
+        fs[p, slot] = f[order]
+        return np.matmul(self.stack_t, self.stack * fs[..., None])
+
+    def add_tangent(self, A, T):
+        """T's values (a ``SparseTangent``) += ∂²E_s/∂α² (``hessian_parts``),
+        each part placed by positions found at the first call for T: the
+        patches' blocks ⊗ I₃, and Jᵀ diag(EA ξ L) J a group of windows at a
+        time (those whose first point lies over a patch), J_g (windows ×
+        3 U_g, U_g the columns they reach) formed by a sparse map of the
+        points' s_q t_q, s_q = W_q/(L_w L_q²), and J_gᵀ diag J_g by one GEMM."""
+        if getattr(self, "placed", None) is None or self.placed[0] is not T:
+            self.placed = (T, self._placement(T))
+        _, (pos, Jmap, scale, jpos) = self.placed
+        t, f = self._forces(A)
+        blocks = self._patch_blocks(f)
+        T.add_at(pos, np.broadcast_to(blocks[..., None], pos.shape))
+        ng, nw = scale.shape
+        J = (Jmap @ ((self.share / self.L2)[:, None] * t)).reshape(ng, nw, -1)
+        T.add_at(jpos, np.matmul(J.transpose(0, 2, 1) * scale[:, None, :], J))
+
+    def _placement(self, T):
+        """(pos, Jmap, scale, jpos) of ``add_tangent`` for T: the positions
+        of the patches' blocks ⊗ I₃ (patches, 32, 32, 3); the sparse map of
+        s_q t_q to the groups' J_g, padded (groups · windows · U) × points;
+        EA ξ_w L_w of each group's windows (groups, windows); the positions
+        of J_gᵀ diag J_g (groups, U, 3, U, 3)."""
+        c = np.arange(3)
+        k = self.keys
+        pos = T.positions(3 * k[:, :, None, None] + c, 3 * k[:, None, :, None] + c)
+        nwin, n = len(self.L), T.N // 3
+        group = patch_of(self.cols, self.win, nwin)
+        count = np.bincount(group)
+        order = np.argsort(group, kind="stable")
+        wslot = np.empty(nwin, dtype=np.int64)              # w's row in its group
+        wslot[order] = np.arange(nwin) - np.repeat(np.cumsum(count) - count, count)
+        g = group[self.win]                                  # each point's group
+        reach, u = np.unique(g[:, None] * n + self.cols, return_inverse=True)
+        width = np.bincount(reach // n, minlength=len(count))
+        first = np.cumsum(width) - width
+        u = u.reshape(self.cols.shape) - first[g][:, None]
+        ng, nw, wide = len(count), count.max(), width.max()
+        Jmap = sparse.csr_matrix(
+            (self.vals.ravel(), ((((g * nw + wslot[self.win])[:, None] * wide + u)).ravel(),
+                                 np.repeat(np.arange(len(g)), self.cols.shape[1]))),
+            shape=(ng * nw * wide, len(g)))
+        scale = np.zeros((ng, nw))
+        scale[group, wslot] = self.EA * self.xi * self.L
+        U = np.zeros((ng, wide), dtype=np.int64)
+        U[reach // n, np.arange(len(reach)) - first[reach // n]] = reach % n
+        shape = (ng, wide, 3, wide, 3)
+        inside = np.arange(wide) < width[:, None]
+        inside = np.broadcast_to(inside[:, :, None, None, None] & inside[:, None, None, :, None],
+                                 shape)
+        jpos = np.full(shape, T.nnz)
+        jpos[inside] = T.positions(
+            np.broadcast_to(3 * U[:, :, None, None, None] + c[:, None, None], shape)[inside],
+            np.broadcast_to(3 * U[:, None, None, :, None] + c, shape)[inside])
+        return pos, Jmap, scale, jpos
+
     def hessian_parts(self, A):
         """∂²E_s/∂α² (3n × 3n) as two scipy matrices whose sum it is, α
         interleaved (3c + i): the points' Σ_q f_q D_qᵀ D_q ⊗ I₃ from the
@@ -129,11 +193,7 @@ class ShellStretch:
         pattern laid out at the first call)."""
         t, f = self._forces(A)
         n = self.D.shape[1]
-        p, slot, order = self.where
-        fs = np.zeros(self.stack.shape[:2])
-        fs[p, slot] = f[order]
-        # a GEMM a patch (numpy's stacked matmul does not call BLAS)
-        blocks = np.stack([a @ b for a, b in zip(self.stack_t, self.stack * fs[..., None])])
+        blocks = self._patch_blocks(f)
         k, c = self.keys.shape[1], np.arange(3)
         rows = (3 * np.repeat(self.keys, k, axis=1)[..., None] + c).ravel()
         cols = (3 * np.tile(self.keys, k)[..., None] + c).ravel()

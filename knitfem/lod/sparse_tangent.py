@@ -6,11 +6,15 @@ both: its entries lie in the pattern of Γ̃ᵀ |K| Γ̃, which is that of the
 reduced mass Γ̃ᵀ m Γ̃ (``ReducedModel.m``, PtAP's structural product) and of
 the shell's stitch windows. That pattern, each entry a full 3 × 3 block, is
 laid out once; a Newton iteration zeroes its values, adds each part's
-contribution (a scipy sparse matrix, the sampled elements' Γ_Sᵀ K_S Γ_S, or a
-dense one) by a binary search of its entries' keys (row · 3n + column) among
-the pattern's, and hands PETSc the values in place: the AIJ matrix keeps its
+contribution and hands PETSc the values in place: the AIJ matrix keeps its
 nonzero pattern, so a sparse factorisation (MUMPS, by the ``reduced_``
-options) keeps its symbolic phase.
+options) keeps its symbolic phase. A part whose entries keep their places
+(the sampled elements' Γ_Sᵀ K_S Γ_S by ``PatchProduct``, the shell's) finds
+their positions in the pattern once (``positions``) and adds its values
+there by one ``bincount`` a call (``add_at``); one whose entries move (the
+contact set's, where the yarns come within the gap) is placed by a binary
+search of its entries' keys (row · 3n + column) among the pattern's
+(``add``).
 """
 
 import numpy as np
@@ -19,7 +23,7 @@ from scipy import sparse
 
 from knitfem.model.assembly import create_aij
 
-__all__ = ["SparseTangent", "scalar_pattern"]
+__all__ = ["PatchProduct", "SparseTangent", "scalar_pattern"]
 
 
 def scalar_pattern(A):
@@ -81,6 +85,21 @@ class SparseTangent:
     def zero(self):
         self.values[:] = 0.0
 
+    def positions(self, rows, cols):
+        """The positions in ``values`` of the entries (rows, cols) (arrays of
+        a shape), found once: ``nnz`` (a slot past the end, which ``add_at``
+        drops) for those outside the pattern, and counted (``outside``)."""
+        keys = np.asarray(rows, dtype=np.int64) * self.N + cols
+        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        hit = self.keys[pos] == keys
+        self.outside += int(np.count_nonzero(~hit))
+        return np.where(hit, pos, self.nnz)
+
+    def add_at(self, pos, x):
+        """values[pos] += x (arrays of a shape, ``pos`` from ``positions``),
+        entries at the same position summed, those at ``nnz`` dropped."""
+        self.values += np.bincount(pos.ravel(), x.ravel(), minlength=self.nnz + 1)[:-1]
+
     def add(self, A):
         """values += the entries of the scipy sparse matrix ``A`` (3n × 3n);
         entries outside the pattern are dropped and counted (``outside``)."""
@@ -110,3 +129,67 @@ class SparseTangent:
 
     def destroy(self):
         self.mat.destroy()
+
+
+class PatchProduct:
+    """Γᵀ K Γ (Γ = Γ̃ ⊗ I₃) of a K on a fixed pattern with full 3 × 3 blocks
+    (``indptr3``, ``indices3``, as ``ElementPattern.blocks3``) over m points
+    whose rows of Γ̃ are (``cols``, ``vals``), (m, k), added to the values of
+    a ``SparseTangent`` ``T`` a patch of the volume at a time.
+
+    The points over a patch P share its k columns; with U_P the columns of
+    the points their rows of K reach and (i, j) a block's components,
+
+        Y^{ij}_{pd} = Σ_q K^{ij}_{pq} Γ̃_{qd}   (p ∈ P, d ∈ U_P),
+        (Γᵀ K Γ)_{(c,i),(d,j)} += Σ_{p∈P} Γ̃_{pc} Y^{ij}_{pd}   (c ∈ P's columns),
+
+    Y a sparse map of K's blocks fixed at set-up (``Y``: padded to the
+    largest patch and reach, (patches · points · reach) × blocks) and the
+    second sum one GEMM a patch, its entries placed by positions found once.
+    """
+
+    def __init__(self, T, indptr3, indices3, cols, vals):
+        self.T = T
+        m, k = cols.shape
+        nb = (indptr3[3:len(indptr3):3] - indptr3[0:-1:3]) // 9     # blocks a row
+        p = np.repeat(np.arange(m), nb)                               # block (p, q)
+        t = np.arange(len(p)) - np.repeat(np.cumsum(nb) - nb, nb)     # its place in row p
+        q = indices3[indptr3[3 * p] + 3 * t] // 3
+        c = np.arange(3)
+        # the position of K^{ij}_{pq} in K's values, (blocks, 3, 3)
+        self.block = indptr3[3 * p[:, None] + c][:, :, None] + 3 * t[:, None, None] + c
+        keys, patch = np.unique(cols, axis=0, return_inverse=True)
+        patch = patch.ravel()
+        count = np.bincount(patch)
+        order = np.argsort(patch, kind="stable")
+        slot = np.empty(m, dtype=np.int64)                            # p's row in its patch
+        slot[order] = np.arange(m) - np.repeat(np.cumsum(count) - count, count)
+        n = T.N // 3
+        reach, u = np.unique(patch[p][:, None] * n + cols[q], return_inverse=True)
+        width = np.bincount(reach // n, minlength=len(keys))          # |U_P|
+        first = np.cumsum(width) - width
+        u = u.reshape(len(p), k) - first[patch[p]][:, None]           # d's place in U_P
+        self.shape = (len(keys), count.max(), width.max())
+        npatch, rows, wide = self.shape
+        self.Y = sparse.csr_matrix(
+            (vals[q].ravel(), (((patch[p] * rows + slot[p])[:, None] * wide + u).ravel(),
+                               np.repeat(np.arange(len(p)), k))),
+            shape=(npatch * rows * wide, len(p)))
+        self.Gt = np.zeros((npatch, k, rows))                         # Γ̃_{P·}ᵀ
+        self.Gt[patch, :, slot] = vals
+        U = np.zeros((npatch, wide), dtype=np.int64)
+        U[reach // n, np.arange(len(reach)) - first[reach // n]] = reach % n
+        # the entry (c, i), (d, j) of Γᵀ K Γ of each [P, c, d, i, j] (d ∈ U_P)
+        shape = (npatch, k, wide, 3, 3)
+        inside = np.broadcast_to((np.arange(wide) < width[:, None])[:, None, :, None, None],
+                                 shape)
+        self.pos = np.full(shape, T.nnz)
+        self.pos[inside] = T.positions(
+            np.broadcast_to(3 * keys[:, :, None, None, None] + c[:, None], shape)[inside],
+            np.broadcast_to(3 * U[:, None, :, None, None] + c, shape)[inside])
+
+    def add(self, values):
+        """T's values += Γᵀ K Γ, K given by its ``values``."""
+        npatch, rows, wide = self.shape
+        Y = (self.Y @ values[self.block].reshape(-1, 9)).reshape(npatch, rows, wide * 9)
+        self.T.add_at(self.pos, np.matmul(self.Gt, Y))
