@@ -64,8 +64,9 @@ def test_relaxed_knit_file_round_trip_and_mismatch(tmp_path):
 @pytest.mark.parametrize("contacts", ["fixed", "sliding"])
 def test_the_ramp_starts_consistent_and_ends_at_the_natural_knit(contacts):
     """At λ = 0 the start, stretched 20 % along the wales and of a loop
-    length 5 % short, is stretch-free and keeps its crossings (g = 0 to
-    round-off: measured 0 fixed, 1e-19 m sliding); at λ = 1 the rest
+    length 5 % short, is stretch-free, and the natural rest X (the template
+    at the loop length) keeps its crossings (g = 0 to round-off: measured 0
+    fixed, 1e-19 m sliding), which the stretched start does not; at λ = 1 the rest
     quantities are exactly the natural knit's (its line elements, held
     separations and invariants: (1 − λ) start + λ end is end)."""
     j = Jersey(3, 3)
@@ -80,8 +81,10 @@ def test_the_ramp_starts_consistent_and_ends_at_the_natural_knit(contacts):
     ramp = Ramp(system, x0)
     ramp.set(0.0)
     g = system.C.createVecLeft()
-    system.constraint_residual(x0, g)
+    system.constraint_residual(system.rest_state(), g)
     assert g.norm(PETSc.NormType.INFINITY) < 1e-18
+    system.constraint_residual(x0, g)
+    assert g.norm(PETSc.NormType.INFINITY) > 1e-6
     assert np.abs(el.strain(system.yarn_points(x0))).max() < 1.5e-15  # measured 2.0e-16
     ramp.set(1.0)
     assert np.array_equal(el.W, natural[0]) and np.array_equal(el.Xp2, natural[1])
@@ -90,10 +93,10 @@ def test_the_ramp_starts_consistent_and_ends_at_the_natural_knit(contacts):
     assert np.allclose(touching, 2 * j.radius, rtol=1e-15, atol=0)  # measured 0
 
 
-def relaxed(tmp_path, name, *args):
+def relaxed(tmp_path, name, *args, contact="off"):
     out = tmp_path / name
     p = knitfem("relax", "-knit_rows", "3", "-knit_cols", "3", "-knit_yarn_contact",
-                "off", *args, "-o", str(out))
+                contact, *args, "-o", str(out))
     assert p.returncode == 0, p.stderr
     return out, json.loads((out / "summary.json").read_text())
 
@@ -106,14 +109,14 @@ def test_relax_then_a_free_run_stays_put(tmp_path):
     8.3e-13 r."""
     out, rec = relaxed(tmp_path, "relax")
     assert rec["status"] == "completed" and rec["residual_acceleration_m_s2"] < 1e-4
-    assert rec["chart"] == ["KKK"] * 3 and rec["steps"] == 4
+    assert rec["chart"] == ["KKK"] * 3 and rec["steps"] == 5
     assert rec["loop_length_m"] == pytest.approx(16.82e-3, rel=5e-5)  # measured 6.8e-6
     for key in ("course_spacing_m", "wale_spacing_m", "k_c", "k_w", "k_s"):
         assert rec[key] > 0
     assert rec["k_s"] == rec["k_c"] * rec["k_w"]          # exactly: its definition
     series = meshio.xdmf.TimeSeriesReader(str(out / "relaxed.xdmf"))
     series.read_points_cells()
-    assert series.num_steps == 5 and (out / "relaxed.png").exists()
+    assert series.num_steps == 6 and (out / "relaxed.png").exists()
     for model in ("full", "reduced"):
         run = tmp_path / model
         p = knitfem("run", "-knit_scene", "freefall", "-knit_gravity", "0",
@@ -130,13 +133,15 @@ def test_relax_then_a_free_run_stays_put(tmp_path):
 
 def test_the_relaxed_knit_forgets_its_template(tmp_path):
     """Started 20 % stretched along the wales it relaxes to the knit it
-    relaxes to from the template: k_c and k_w the same to 2e-11 (measured
-    3.0e-12, the residual acceleration -knit_rest_accel leaves; the yarn
-    contact off, for speed)."""
-    _, a = relaxed(tmp_path, "a")
-    _, b = relaxed(tmp_path, "b", "-knit_template_scale", "1,1.2,1")
+    relaxes to from the template: k_c and k_w the same to 3e-9 (measured
+    4.0e-11 and 5.1e-10, the residual acceleration -knit_rest_accel leaves).
+    With the yarn contact: without it the 3×3's yarns pass through each
+    other, and where the spring lets go round-off alone picks one of two
+    minima, k_c 4.49 or 4.60."""
+    _, a = relaxed(tmp_path, "a", contact="on")
+    _, b = relaxed(tmp_path, "b", "-knit_template_scale", "1,1.2,1", contact="on")
     for k in ("k_c", "k_w"):
-        assert b[k] == pytest.approx(a[k], rel=2e-11), k
+        assert b[k] == pytest.approx(a[k], rel=3e-9, abs=0), k
 
 
 def test_rest_of_other_stitches_is_refused(tmp_path):

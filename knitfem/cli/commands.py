@@ -186,8 +186,9 @@ def relax(comm):
                         "expected three positive factors")
     material = material_from_options(opts, gravity=0.0, damping=0.0)
     yarn_contact = yarn_contact_option(opts)
-    steps = opts.getInt("load_steps", 4, "load steps that take the rest lengths and "
-                        "crossings from the start's own to the natural knit's", 1)
+    steps = opts.getInt("load_steps", 5, "load steps that take the crossings from "
+                        "the template's to the natural knit's (all but the last "
+                        "with a spring to the template's shape)", 1)
     accel = opts.getReal("rest_accel", 1e-4, "the knit is at rest when no "
                          "coordinate's residual force over its mass exceeds this "
                          "[m/s^2]", positive=True)
