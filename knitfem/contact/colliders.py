@@ -401,25 +401,32 @@ class Barrier:
             np.add.at(out, self.el.conn[e], scale * g)
 
     def add_hessian(self, x, slot, values):
-        """values[slot[e]] += ∂²E_c/∂p∂p of the active elements; ``slot`` the
-        yarn elements' (ne, 12, 12) value slots."""
-        e, _, n, H, d1, d2, _ = self._active(x)
-        Hq = d2[..., None, None] * n[..., :, None] * n[..., None, :] \
-            + d1[..., None, None] * H                                # (e, q, 3, 3)
-        self._add_blocks(e, Hq, slot, values)
-        if self.lagged is not None:
-            e, _, Hq = self._friction_terms(x)
-            self._add_blocks(e, Hq, slot, values)
+        """values[slot[e]] += ∂²(E_c + D)/∂p∂p of the elements within the gap
+        (``element_hessian``); ``slot`` the yarn elements' (ne, 12, 12)
+        value slots."""
+        e, blocks = self.element_hessian(x)
+        where = slot[e].ravel()
+        mine = where >= 0                              # rows of this rank
+        values += np.bincount(where[mine], blocks.ravel()[mine], minlength=len(values))
 
-    def _add_blocks(self, e, Hq, slot, values):
-        """values[slot[e]] += Σ_q b_a b_b Hq of the elements e."""
-        if len(e):
-            B = self.el.B
-            blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
-            where = slot[e].ravel()
-            mine = where >= 0                          # rows of this rank
-            values += np.bincount(where[mine], blocks.ravel()[mine],
-                                  minlength=len(values))
+    def element_hessian(self, x):
+        """The 12 × 12 blocks of ∂²(E_c + D)/∂p∂p, Σ_q b_a b_b H_q with
+
+            H_q = w f''(δ) n nᵀ + w f'(δ) ∇²φ          (barrier),
+            H_q = μλ (f₁' û ûᵀ + f₁/y (T − û ûᵀ))      (friction, lagged),
+
+        of the elements with a point within the gap and of the lagged ones:
+        (elements (m,), blocks (m, 12, 12)), an element lagged and within
+        the gap listed twice."""
+        e, _, n, H, d1, d2, _ = self._active(x)
+        parts = [(e, d2[..., None, None] * n[..., :, None] * n[..., None, :]
+                  + d1[..., None, None] * H)]                       # (e, q, 3, 3)
+        if self.lagged is not None:
+            parts.append(self._friction_terms(x)[::2])
+        B = self.el.B
+        return (np.concatenate([e for e, _ in parts]),
+                np.concatenate([np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
+                                for _, Hq in parts]))
 
     def swept_depth(self, x0, x1, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
