@@ -265,6 +265,7 @@ class Barrier:
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged, self.step_h = None, None
+        self.distance_at = None
 
     def at(self, t):
         """Pose the moving bodies at time t."""
@@ -360,13 +361,22 @@ class Barrier:
     def surface_distance(self, x):
         """δ = min over bodies of φ − r at every quadrature point, which body
         is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
-        x_eq (ne, nq, 3))."""
-        pts = self.el.points(x)
-        phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
-        nearest = np.argmin(phi, axis=0)
-        shape = pts.shape[:2]
-        return ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
-                nearest.reshape(shape), pts)
+        x_eq (ne, nq, 3)). Computed once a state: the forces, the tangent
+        and the step filter at the same x, the bodies where they were
+        (the moving ones' times), share it."""
+        x = np.asarray(x)
+        poses = tuple(body.time for body in self.bodies if moving(body))
+        kept = self.distance_at
+        if kept is None or kept[1] != poses or not np.array_equal(kept[0], x):
+            pts = self.el.points(x)
+            phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
+            nearest = np.argmin(phi, axis=0)
+            shape = pts.shape[:2]
+            kept = self.distance_at = (
+                x.copy(), poses,
+                ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
+                 nearest.reshape(shape), pts))
+        return kept[2]
 
     def _active(self, x):
         """Elements with a point within the gap, and f', f'' (weighted by
@@ -466,12 +476,13 @@ class Barrier:
         far inside it (a step filter, as in IPC). Along a straight path φ is convex for a
         sphere, a capsule or a plane, so the first crossing of each point is
         found by bisection."""
-        p, q = self.el.points(x).reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
+        start, _, p = self.surface_distance(x)
+        p, q = p.reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
 
         def delta(pts):
             return np.min([body.phi(pts) for body in self.bodies], axis=0) - self.radius
 
-        bound = np.minimum(delta(p), 0.0) - self.gap
+        bound = np.minimum(start.ravel(), 0.0) - self.gap
         out = np.flatnonzero(delta(p + q) < bound)
         if not len(out):
             return 1.0
