@@ -311,3 +311,25 @@ def test_friction_smoothing_follows_the_step_as_first_tried():
     model.move_bodies(0.005, 0.0075)
     assert barrier.eps_slip == pytest.approx(SLIP_SPEED * 0.0025, rel=1e-15, abs=0)
     model.destroy()
+
+
+def test_distances_kept_for_a_state_are_those_computed_afresh(pressed):
+    """The δ a barrier keeps for a state (``surface_distance``) is φ − r of
+    every body computed afresh, and is formed again when the points move
+    (in place) or a moving body is posed at another time."""
+    from knitfem.contact.motion import Kinematic, Motion
+
+    model, x = pressed
+    b = model.barrier
+    body = b.bodies[0]
+    b.bodies = (Kinematic(body, Motion([0.0, 1.0], [[0, 0, 0], [0.001, 0.002, 0]])),)
+    P = model.yarn_points(x).copy()
+
+    def afresh():
+        pts = b.el.points(P).reshape(-1, 3)
+        return (b.bodies[0].phi(pts) - b.radius).reshape(b.surface_distance(P)[0].shape)
+
+    for change in (lambda: None, lambda: P.__iadd__(1e-4), lambda: b.at(0.5)):
+        change()
+        assert b.surface_distance(P)[0] is b.surface_distance(P)[0]
+        assert np.array_equal(b.surface_distance(P)[0], afresh())        # exactly

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import sparse as sp
 from petsc4py import PETSc
 
 from helpers import COMM, gather, jersey, models, run, to_scipy
@@ -334,6 +335,28 @@ def test_contact_set_is_the_whole_barrier_through_gamma():
     # measured 0 (the same sums in the same order)
     assert np.allclose(f, ref, rtol=0, atol=1e-15 * np.abs(ref).max())
     assert len(red.contact.active) < full.elements.ne
+
+
+def test_contact_hessian_on_the_points_in_the_gap_is_the_whole_set_s():
+    """Γ_Pᵀ K_P Γ_P over the points of the elements within the gap equals
+    Γ_Aᵀ K Γ_A with K assembled on the whole active set's pattern."""
+    from knitfem.model.assembly import ElementPattern
+
+    red = bodied()
+    a = pressed_state(red, 8)
+    A = a.getArray().reshape(-1, 3)
+    c = red.contact
+    indptr3, indices3, (slot3,) = ElementPattern(
+        c.view.conn, 0, len(c.view.points_index)).blocks3()
+    values = np.zeros(len(indices3))
+    c.barrier.add_hessian(c.Ga @ A, slot3, values)
+    K = sp.csr_matrix((values, indices3, indptr3), shape=(c.Ga3.shape[0],) * 2)
+    ref = (c.Ga3.T @ (K @ c.Ga3)).toarray()
+    new = c.hessian(A).toarray()
+    assert np.abs(ref).max() > 0
+    assert len(np.unique(c.barrier.element_hessian(c.Ga @ A)[0])) < len(c.active)
+    # measured 9.4e-17 of the largest
+    assert np.allclose(new, ref, rtol=0, atol=8e-16 * np.abs(ref).max())
 
 
 def test_shell_on_sampled_stitches_weighs_what_it_stands_for():

@@ -265,6 +265,7 @@ class Barrier:
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged, self.step_h = None, None
+        self.distance_at = None
 
     def at(self, t):
         """Pose the moving bodies at time t."""
@@ -360,13 +361,22 @@ class Barrier:
     def surface_distance(self, x):
         """δ = min over bodies of φ − r at every quadrature point, which body
         is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
-        x_eq (ne, nq, 3))."""
-        pts = self.el.points(x)
-        phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
-        nearest = np.argmin(phi, axis=0)
-        shape = pts.shape[:2]
-        return ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
-                nearest.reshape(shape), pts)
+        x_eq (ne, nq, 3)). Computed once a state: the forces, the tangent
+        and the step filter at the same x, the bodies where they were
+        (the moving ones' times), share it."""
+        x = np.asarray(x)
+        poses = tuple(body.time for body in self.bodies if moving(body))
+        kept = self.distance_at
+        if kept is None or kept[1] != poses or not np.array_equal(kept[0], x):
+            pts = self.el.points(x)
+            phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
+            nearest = np.argmin(phi, axis=0)
+            shape = pts.shape[:2]
+            kept = self.distance_at = (
+                x.copy(), poses,
+                ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
+                 nearest.reshape(shape), pts))
+        return kept[2]
 
     def _active(self, x):
         """Elements with a point within the gap, and f', f'' (weighted by
@@ -401,25 +411,32 @@ class Barrier:
             np.add.at(out, self.el.conn[e], scale * g)
 
     def add_hessian(self, x, slot, values):
-        """values[slot[e]] += ∂²E_c/∂p∂p of the active elements; ``slot`` the
-        yarn elements' (ne, 12, 12) value slots."""
-        e, _, n, H, d1, d2, _ = self._active(x)
-        Hq = d2[..., None, None] * n[..., :, None] * n[..., None, :] \
-            + d1[..., None, None] * H                                # (e, q, 3, 3)
-        self._add_blocks(e, Hq, slot, values)
-        if self.lagged is not None:
-            e, _, Hq = self._friction_terms(x)
-            self._add_blocks(e, Hq, slot, values)
+        """values[slot[e]] += ∂²(E_c + D)/∂p∂p of the elements within the gap
+        (``element_hessian``); ``slot`` the yarn elements' (ne, 12, 12)
+        value slots."""
+        e, blocks = self.element_hessian(x)
+        where = slot[e].ravel()
+        mine = where >= 0                              # rows of this rank
+        values += np.bincount(where[mine], blocks.ravel()[mine], minlength=len(values))
 
-    def _add_blocks(self, e, Hq, slot, values):
-        """values[slot[e]] += Σ_q b_a b_b Hq of the elements e."""
-        if len(e):
-            B = self.el.B
-            blocks = np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
-            where = slot[e].ravel()
-            mine = where >= 0                          # rows of this rank
-            values += np.bincount(where[mine], blocks.ravel()[mine],
-                                  minlength=len(values))
+    def element_hessian(self, x):
+        """The 12 × 12 blocks of ∂²(E_c + D)/∂p∂p, Σ_q b_a b_b H_q with
+
+            H_q = w f''(δ) n nᵀ + w f'(δ) ∇²φ          (barrier),
+            H_q = μλ (f₁' û ûᵀ + f₁/y (T − û ûᵀ))      (friction, lagged),
+
+        of the elements with a point within the gap and of the lagged ones:
+        (elements (m,), blocks (m, 12, 12)), an element lagged and within
+        the gap listed twice."""
+        e, _, n, H, d1, d2, _ = self._active(x)
+        parts = [(e, d2[..., None, None] * n[..., :, None] * n[..., None, :]
+                  + d1[..., None, None] * H)]                       # (e, q, 3, 3)
+        if self.lagged is not None:
+            parts.append(self._friction_terms(x)[::2])
+        B = self.el.B
+        return (np.concatenate([e for e, _ in parts]),
+                np.concatenate([np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
+                                for _, Hq in parts]))
 
     def swept_depth(self, x0, x1, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
@@ -459,12 +476,13 @@ class Barrier:
         far inside it (a step filter, as in IPC). Along a straight path φ is convex for a
         sphere, a capsule or a plane, so the first crossing of each point is
         found by bisection."""
-        p, q = self.el.points(x).reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
+        start, _, p = self.surface_distance(x)
+        p, q = p.reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
 
         def delta(pts):
             return np.min([body.phi(pts) for body in self.bodies], axis=0) - self.radius
 
-        bound = np.minimum(delta(p), 0.0) - self.gap
+        bound = np.minimum(start.ravel(), 0.0) - self.gap
         out = np.flatnonzero(delta(p + q) < bound)
         if not len(out):
             return 1.0

@@ -25,7 +25,6 @@ import numpy as np
 from scipy import sparse
 
 from knitfem.contact.colliders import Barrier
-from knitfem.model.assembly import ElementPattern
 
 __all__ = ["ActiveContact"]
 
@@ -86,9 +85,6 @@ class ActiveContact:
         self.view = ElementView(self.el, e)
         self.Ga = self.G[self.view.points_index]
         self.Ga3 = sparse.kron(self.Ga, sparse.identity(3), format="csr")
-        pattern = ElementPattern(self.view.conn, 0, len(self.view.points_index))
-        self.indptr3, self.indices3, (slot3,) = pattern.blocks3()
-        self.slot3 = np.ascontiguousarray(slot3, dtype=np.int64)
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)
 
@@ -148,13 +144,23 @@ class ActiveContact:
         out += self.Ga.T @ g
 
     def hessian(self, alpha):
-        """Γ_Aᵀ ∇²(E_c + D) Γ_A, a scipy sparse matrix (3n × 3n)."""
-        values = np.zeros(len(self.indices3))
-        self.barrier.add_hessian(self._x(alpha), self.slot3, values)
-        n3 = self.Ga3.shape[0]
-        K = sparse.csr_matrix((values, self.indices3, self.indptr3), shape=(n3, n3))
-        K.eliminate_zeros()            # the set's elements outside the gap
-        return self.Ga3.T @ (K @ self.Ga3)
+        """Γ_Aᵀ ∇²(E_c + D) Γ_A, a scipy sparse matrix (3n × 3n), as
+
+            Σ_e Γ_eᵀ K_e Γ_e = Γ_Pᵀ K_P Γ_P,
+
+        K_e the 12 × 12 blocks of the elements within the gap or lagged
+        (``Barrier.element_hessian``; the others' vanish), K_P their sum on
+        the points P they touch and Γ_P those points' rows of Γ̃ ⊗ I₃: the
+        cost follows the contact region, not the set."""
+        e, blocks = self.barrier.element_hessian(self._x(alpha))
+        points, local = np.unique(self.view.conn[e], return_inverse=True)
+        rows = (3 * local.reshape(-1, 4, 1) + np.arange(3)).reshape(-1, 12)
+        m3 = 3 * len(points)
+        K = sparse.csr_matrix(
+            (blocks.ravel(), (np.repeat(rows, 12, axis=1).ravel(), np.tile(rows, 12).ravel())),
+            shape=(m3, m3))
+        G = self.Ga3[(3 * points[:, None] + np.arange(3)).ravel()]
+        return G.T @ (K @ G)
 
     def step_limit(self, alpha, dalpha):
         """``Barrier.step_limit`` on the set's points."""
