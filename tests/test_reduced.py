@@ -241,7 +241,7 @@ def test_placed_parts_equal_the_explicit_products():
     a = pressed_state(red)
     tangent_of(red, a, sparse=True)
     T, A = red.sparse, red._all(a).copy()
-    for new, old in ((lambda: red._yarns(T).add(red.sampled._values(A, None)),
+    for new, old in ((lambda: red._yarns(T).add(red.sampled.hessian_values(A, None)),
                       lambda: T.add(red.sampled.sparse_tangent(A))),
                      (lambda: red.shell.add_tangent(A, T),
                       lambda: [T.add(part) for part in red.shell.hessian_parts(A)])):

@@ -566,7 +566,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             A = self._all(alpha)
             if self.sparse is not None:
                 return self._sparse_stiffness(
-                    A, lambda T: self._yarns(T).add(self.sampled._values(A, ref)))
+                    A, lambda T: self._yarns(T).add(self.sampled.hessian_values(A, ref)))
 
             def reduce(R):
                 self.sampled.tangent(A, R, ref)

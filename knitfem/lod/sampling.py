@@ -116,7 +116,7 @@ class SampledElements:
         self.kernels.add_gradient(self.points_of(alpha), g, -1.0)
         out += self.rows_t @ g
 
-    def _values(self, alpha, alpha_ref):
+    def hessian_values(self, alpha, alpha_ref=None):
         """The values of Σ_{e∈S} ξ_e ∇²E_e at the points of S (their pattern
         ``indptr3``, ``indices3``)."""
         ref = None if alpha_ref is None else self.points_of(alpha_ref)
@@ -126,7 +126,7 @@ class SampledElements:
     def tangent(self, alpha, out, alpha_ref=None):
         """out (3 nvolume, 3 nvolume) = Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e (with
         ``alpha_ref``, its axial force linearised from that state: MIP)."""
-        values = self._values(alpha, alpha_ref)
+        values = self.hessian_values(alpha, alpha_ref)
         if self.grouped is not None:
             return self.grouped(values, out)
         out[:] = self.sparse_tangent(alpha, alpha_ref, values).toarray()
@@ -135,7 +135,7 @@ class SampledElements:
     def sparse_tangent(self, alpha, alpha_ref=None, values=None):
         """Σ_{e∈S} ξ_e Γ_eᵀ ∇²E_e Γ_e as a scipy sparse matrix, Γ_Sᵀ K_S Γ_S."""
         if values is None:
-            values = self._values(alpha, alpha_ref)
+            values = self.hessian_values(alpha, alpha_ref)
         n3 = self.G3.shape[0]
         K = sparse.csr_matrix((values, self.indices3, self.indptr3), shape=(n3, n3))
         return self.G3.T @ (K @ self.G3)

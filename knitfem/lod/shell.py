@@ -99,6 +99,7 @@ class ShellStretch:
         self.stack[patch[order], slot] = vals[order]
         self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
         self.where = (patch[order], slot, order)
+        self.placed = None            # (T, positions) of add_tangent's first call for T
 
     def _strain(self, A):
         """t_q (npts, 3) and ē_w (nwin,)."""
@@ -136,7 +137,7 @@ class ShellStretch:
         time (those whose first point lies over a patch), J_g (windows ×
         3 U_g, U_g the columns they reach) formed by a sparse map of the
         points' s_q t_q, s_q = W_q/(L_w L_q²), and J_gᵀ diag J_g by one GEMM."""
-        if getattr(self, "placed", None) is None or self.placed[0] is not T:
+        if self.placed is None or self.placed[0] is not T:
             self.placed = (T, self._placement(T))
         _, (pos, Jmap, scale, jpos) = self.placed
         t, f = self._forces(A)
