@@ -316,3 +316,30 @@ def test_a_tube_at_rest_has_a_band_and_no_barrier():
     e = np.searchsorted(yc.edges[:, 0], seam[:, 0])
     f = np.searchsorted(yc.edges[:, 0], first[:, 0])
     assert not yc._apart(e, f).any() and not yc.edges_may_touch(e, f).any()
+
+
+@pytest.mark.parametrize("shape", ["flat", "tube"])
+def test_one_yarn_is_excluded_by_arc_not_by_samples(shape):
+    """On a seed, whose rest edges differ by 2.6× in length, two samples of
+    one yarn are never kept apart closer than L / 2 = self_reach · r along it
+    (the short way round a tube's course) and always kept apart from L on,
+    unless the crossings or the template's tight pairs exclude them."""
+    from knitfem.knit.chart import named_chart
+
+    j = Jersey(4, 6, knit=shape, chart=named_chart("seed", 4, 6))
+    fab = jersey_fabric(j)
+    yc = YarnContact(fab, 1.0)
+    edge = yc.edge_lengths(yc.samples(fab.X))
+    assert edge.max() / edge.min() > 2          # measured 2.6
+    i, j_ = np.triu_indices(len(yc.sample_yarn), 1)
+    same = yc.sample_yarn[i] == yc.sample_yarn[j_]
+    i, j_ = i[same], j_[same]
+    along = np.abs(yc.arc[i] - yc.arc[j_])
+    along = np.minimum(along, yc.perimeter[i] - along)
+    key = i * len(yc.sample_yarn) + j_
+    free = ~np.isin(key, yc.excluded)
+    may = yc.samples_may_touch(i, j_)
+    L = 2 * 8.0 * R
+    assert not may[along < L / 2].any()
+    assert may[(along >= L) & free].all()
+    assert ((along >= L) & free).sum() > 1000    # the pairs the old runs cut off

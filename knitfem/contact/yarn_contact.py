@@ -20,14 +20,18 @@ half the band, κ b'(x̂/2) 2d ≈ 4.77 κ dmin² d̂, the bending force scale
 EI / r² of the yarn.
 
 Which pairs may touch. Parts of one yarn less than ``self_reach`` × r
-apart along it never do: samples are grouped along each yarn in runs of W
-(W / 2 samples ≥ ``self_reach`` r of rest arc), once from the first sample
-and once shifted by W / 2, and two samples of one yarn are kept apart only
-when they lie in different runs of both groupings (the toolkit's vertex
-patch filters, combined in C++): pairs closer than W / 2 samples are
-always excluded, pairs farther than W always included (on a closed yarn,
-a tube's course, the pairs less than W apart across its seam are excluded
-too: the runs do not wrap round). Near a persistent
+apart along it never do: each yarn is cut into patches of L = 2
+``self_reach`` r of its rest arc, once from its first sample and once
+shifted by L / 2, and two samples of one yarn are kept apart only when
+they lie in different patches of both groupings (the toolkit's vertex
+patch filters, combined in C++): pairs closer than L / 2 along the yarn are
+always excluded, pairs farther than L always included (on a closed yarn,
+a tube's course, the pairs less than L apart across its seam are excluded
+too: the patches do not wrap round). The patches are cut by arc, not by a
+count of samples: a pattern's template has segments of unequal lengths
+(a 10×10 seed's rest edges 0.43–1.11 r), and runs of samples sized by the
+shortest reached 30 r along its yarns, past the pairs of one loop that
+touch. Near a persistent
 crossing (s_a, s_b) the samples of yarn a within ``window`` of s_a and of
 yarn b within ``window`` of s_b are excluded from each other (a sparse
 filter; a window on a closed yarn reaches across its seam): the crossing
@@ -158,8 +162,10 @@ class YarnContact:
         self.mesh = ipctk.CollisionMesh(_fortran(V), self.edges.astype(np.int32),
                                         np.zeros((0, 3), np.int32))
         edge = np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
-        half = max(1, int(np.ceil(self_reach * r / edge.min(initial=r))))
-        self.run = 2 * half
+        self.patch = 2.0 * self_reach * r
+        self.arc, self.perimeter = self._rest_arc(edge)
+        self.edge_max = edge.max(initial=0.0)
+        self._patch_ids = self._patches()
         self.excluded = self._excluded(fabric, window)
         self.mesh.can_collide = self._filter()
         # pairs the template itself brings within half the band (a tube's
@@ -180,15 +186,36 @@ class YarnContact:
         self.pairs = self.segment_pairs(fabric.X.reshape(-1, 3), self.margin)
         self.missed, self._DT = 0, None
 
+    def _rest_arc(self, edge):
+        """Arc length along its yarn of every sample at rest (from the
+        yarn's first sample) and the perimeter of its yarn (closed yarns;
+        inf on an open one), from the rest lengths ``edge`` of the edges."""
+        e0 = self.edges[:, 0]
+        arc = np.zeros(len(self.sample_yarn))
+        perimeter = np.full(len(self.yarn_first), np.inf)
+        for f, (first, m) in enumerate(zip(self.yarn_first, self.yarn_samples)):
+            mine = (e0 >= first) & (e0 < first + m)      # the yarn's edges, in order
+            run = np.cumsum(edge[mine])
+            arc[first + 1:first + m] = run[:m - 1]
+            if self.yarn_closed[f]:
+                perimeter[f] = run[-1]
+        return arc, perimeter[self.sample_yarn]
+
+    def _patches(self):
+        """Patch numbers (two groupings) of every sample: its yarn's patches
+        of L of rest arc, the second grouping shifted by L / 2 (module
+        docstring), numbered apart from every other yarn's."""
+        per_yarn = int(np.ceil(np.max(self.arc, initial=0.0) / self.patch)) + 2
+        base = self.sample_yarn * per_yarn
+        return [base + np.floor(self.arc / self.patch + shift).astype(np.int64)
+                for shift in (0.0, 0.5)]
+
     def _filter(self):
         """The toolkit's filter of the sample pairs that may touch: not
-        those along a yarn (runs of ``run`` samples, in two groupings) nor
-        the ``excluded`` ones."""
-        i = self.sample_index
-        base = self.sample_yarn * (i.max(initial=0) + 3)
-        runs = [ipctk.make_vertex_patches_filter(
-            (base + (i + shift) // self.run).astype(np.int32))
-            for shift in (0, self.run // 2)]
+        those along a yarn (patches of L, in two groupings) nor the
+        ``excluded`` ones."""
+        runs = [ipctk.make_vertex_patches_filter(p.astype(np.int32))
+                for p in self._patch_ids]
         lo, hi = np.divmod(self.excluded, len(self.sample_yarn))
         near = dict.fromkeys(zip(lo.tolist(), hi.tolist()), False)
         return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
@@ -232,15 +259,18 @@ class YarnContact:
         return self._keys(np.append(a, seam_a), np.append(b, seam_b))
 
     def _seam_pairs(self):
-        """Sample pairs (a, b) of a closed yarn less than a run apart along
-        it across its seam (the runs of ``_filter`` do not wrap round)."""
-        w = self.run
+        """Sample pairs (a, b) of a closed yarn less than L apart along it
+        across its seam (the patches of ``_filter`` do not wrap round)."""
         a, b = [], []
         for start, m in zip(self.yarn_first[self.yarn_closed],
                             self.yarn_samples[self.yarn_closed]):
-            i, j = np.triu_indices(min(w, m), 1)     # i < j < w: j − i apart
-            a.append(start + i)                      # i, and m − w + j: w − (j − i)
-            b.append(start + (m - w + j) % m)        # apart across the seam
+            arc, per = self.arc[start:start + m], self.perimeter[start]
+            head = np.flatnonzero(arc < self.patch)
+            tail = np.flatnonzero(arc > per - self.patch)
+            i, j = np.repeat(head, len(tail)), np.tile(tail, len(head))
+            keep = (i < j) & (arc[i] + per - arc[j] < self.patch)
+            a.append(start + i[keep])
+            b.append(start + j[keep])
         cat = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
         return cat(a), cat(b)
 
@@ -447,23 +477,23 @@ class YarnContact:
         return e[near], f[near], d[near]
 
     def _apart(self, e, f):
-        """Edge pairs on different yarns, or on one yarn at least half a run
-        of samples apart (a cheap first filter: pairs nearer along a yarn
-        never touch)."""
+        """Edge pairs on different yarns, or on one yarn whose first samples
+        are at least L / 2 less the longest rest edge apart along it (a
+        cheap first filter: nearer pairs never touch)."""
         e0 = self.edges[:, 0]
-        ya = self.sample_yarn[e0[e]]
-        gap = np.abs(e0[e] - e0[f])
-        gap = np.where(self.yarn_closed[ya], np.minimum(gap, self.yarn_samples[ya] - gap), gap)
-        return (ya != self.sample_yarn[e0[f]]) | (gap >= self.run // 2 - 1)
+        a, b = e0[e], e0[f]
+        gap = np.abs(self.arc[a] - self.arc[b])
+        gap = np.minimum(gap, self.perimeter[a] - gap)
+        return (self.sample_yarn[a] != self.sample_yarn[b]) | \
+            (gap >= 0.5 * self.patch - self.edge_max)
 
     def edge_lengths(self, V):
         return np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
 
     def samples_may_touch(self, i, j):
         """The toolkit's filter (``_filter``) on sample pairs, vectorised."""
-        w = self.run
-        li, lj = self.sample_index[i], self.sample_index[j]
-        apart = (li // w != lj // w) & ((li + w // 2) // w != (lj + w // 2) // w)
+        p0, p1 = self._patch_ids
+        apart = (p0[i] != p0[j]) & (p1[i] != p1[j])
         ok = (self.sample_yarn[i] != self.sample_yarn[j]) | apart
         key = np.minimum(i, j) * len(self.sample_yarn) + np.maximum(i, j)
         at = np.minimum(np.searchsorted(self.excluded, key), len(self.excluded) - 1)

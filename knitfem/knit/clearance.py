@@ -13,9 +13,14 @@ it) closer than δ = 2.25 r, L the second differences of each yarn's control
 points (wrapping round a closed yarn) and P₀ the template. E is minimised by
 L-BFGS, in rounds of ``ROUND`` iterations, until no two samples are closer
 than 2.08 r: 4 % beyond touching, as a jersey's, and past the yarn contact's
-barrier band (0.072 r). The start has every crossing the right way round and all its gaps positive,
-and the moves only push close pairs apart: the tests check that every
-crossing keeps its depth order. ``hold_crossings`` then moves the two yarns
+barrier band (0.072 r). The start has every crossing the right way round and
+all its gaps positive, and the moves only push close pairs apart: the tests
+check that every crossing keeps its depth order. A round moves no coordinate
+more than ``REACH`` = r/2 from where it began (L-BFGS-B's bounds): the
+penalty sees a pair only while it is closer than δ, and an unbounded line
+search jumps yarns through one another between two looks (the 10×10 seed's
+template moved up to 15 r and its courses slipped out of 62 of their 180
+interlocks; bounded, it moves 3.5 r at most and keeps them all). ``hold_crossings`` then moves the two yarns
 of every crossing the least that puts them a given distance apart (a
 jersey's, so that a pattern's template is as near its crossings' 2r as a
 jersey's is).
@@ -34,6 +39,8 @@ SMOOTH, STAY = 1e-2, 1e-4
 """λ and μ, against the squared gap deficits (lengths in units of r ~ 1)."""
 SAMPLES = 8
 ROUND, ROUNDS = 100, 40
+REACH = 0.5
+"""The largest move of a coordinate in a round, in yarn radii."""
 
 
 def second_differences(fabric):
@@ -83,10 +90,13 @@ def open_up(fabric):
         return scale * E, scale * G.ravel()
 
     P = X0.copy()
+    reach = REACH * fabric.radius
     for _ in range(ROUNDS):
         if not len(gaps.pairs(S @ P, ENOUGH * fabric.radius)[2]):
             return P
-        P = optimize.minimize(energy, P.ravel(), jac=True, method="L-BFGS-B",
+        v = P.ravel()
+        P = optimize.minimize(energy, v, jac=True, method="L-BFGS-B",
+                              bounds=optimize.Bounds(v - reach, v + reach),
                               options=dict(maxiter=ROUND)).x.reshape(-1, 3)
     raise RuntimeError(f"the template could not be opened to 2.08 r within "
                        f"{ROUNDS * ROUND} iterations (smallest gap "
