@@ -106,6 +106,7 @@ class ConstraintAssembly:
         self.mine_h = np.flatnonzero((hpos >= lo) & (hpos < hi))
         crow = first[cpos[self.mine]] - first[lo]
         hrow = first[hpos[self.mine_h]] - first[lo]
+        self.hold_rows = hrow            # first local row of each of mine_h
         k, K = int(first[hi] - first[lo]), int(first[-1])
         length = np.zeros(k, dtype=np.int64)
         length[crow[:, None] + np.arange(nr)] = 3 * kc
