@@ -92,9 +92,7 @@ class ConstrainedDescent:
         self.ksp = self.saddle = self.A = None
         self._layout(system.start_state())
         self.rhs, self.z = self.saddle.createVec(), self.saddle.createVec()
-        diag = self.A.getDiagonal()
-        self.floor = 1e-12 * diag.max()[1] / self.lumped.max()[1]
-        diag.destroy()
+        self._set_floor()
         self.sigma = None
         self.stats = dict(newton=0, rejected=0, relayouts=0, ksp=0, inertia=0)
 
@@ -115,6 +113,13 @@ class ConstrainedDescent:
             # must solve K (C δ = −g) for dL/dt to be the descent it says
             self.ksp.setType("gmres")
             self.ksp.setTolerances(rtol=1e-12, atol=0.0, max_it=30)
+
+    def _set_floor(self):
+        """σ's floor, 10⁻¹² max diag K / max diag M, from the Newton matrix
+        as last laid out."""
+        diag = self.A.getDiagonal()
+        self.floor = 1e-12 * diag.max()[1] / self.lumped.max()[1]
+        diag.destroy()
 
     def _solve(self, K):
         """δ and μ⁺ (into self.z) from the residual in self.rhs, with the
@@ -175,6 +180,15 @@ class ConstrainedDescent:
         return L
 
     # -- the iteration -------------------------------------------------------
+    def start_afresh(self, x):
+        """Forget the iterations so far, as a solver made at x would: no
+        multipliers, the shift chosen again by the next step and its floor
+        taken at x, the Newton matrix laid out at x."""
+        self.mu.zeroEntries()
+        self.sigma = None
+        self._layout(x)
+        self._set_floor()
+
     def guide_to(self, target, c):
         """Add ½ c |ε − ε̂|²_M to Π (c [1/s²] ≥ 0, ε̂ = ``target``, a Vec kept):
         a spring to a given shape, to steer the path to a minimum."""

@@ -2,6 +2,8 @@
 rest, its place in the full model (any number of ranks) and the step
 filter. Runs serial and under mpirun."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -343,3 +345,20 @@ def test_one_yarn_is_excluded_by_arc_not_by_samples(shape):
     assert not may[along < L / 2].any()
     assert may[(along >= L) & free].all()
     assert ((along >= L) & free).sum() > 1000    # the pairs the old runs cut off
+
+
+def test_a_natural_knit_of_a_shorter_loop_keeps_its_templates_gaps():
+    """A natural knit whose rest X is its template scaled to a loop 10 %
+    shorter leaves out the pairs and takes the band of its template at its
+    own size (``Fabric.contact_X``), not those of X, whose gaps close 10 %."""
+    from knitfem.run.relax import natural_fabric, stitch_length
+
+    j = Jersey(4, 4)
+    template = jersey_fabric(j)
+    own = YarnContact(natural_fabric(j, template), 1.0)
+    short = natural_fabric(j, template, 0.9 * stitch_length(j, template))
+    shorter = YarnContact(short, 1.0)
+    assert own.tight_at_rest == shorter.tight_at_rest == 0
+    assert shorter.dhat == own.dhat
+    read_on_X = YarnContact(replace(short, contact_X=None), 1.0)
+    assert read_on_X.tight_at_rest > 100          # measured 724

@@ -169,7 +169,7 @@ def relax(comm):
     from knitfem.model.full import FullModel
     from knitfem.run.output import OutputDirectory
     from knitfem.run.relax import (Relaxation, RelaxedKnit, knit_measures,
-                                   natural_fabric, stitch_length)
+                                   natural_fabric, shortest_loop, stitch_length)
     from knitfem.run.simulation import Simulation
 
     opts = KnitOptions()
@@ -186,6 +186,12 @@ def relax(comm):
                         "expected three positive factors")
     material = material_from_options(opts, gravity=0.0, damping=0.0)
     yarn_contact = yarn_contact_option(opts)
+    shortest = shortest_loop(jersey, template) if yarn_contact else 0.0
+    if ell < shortest:
+        raise KnitError(f"-knit_loop_length {ell:g}: the template scaled to that "
+                        f"loop brings two yarns within their thickness; give at "
+                        f"least {np.ceil(shortest / 1e-5) * 1e-5:.5f} (the template's "
+                        f"own is {ell0:.4g}) or -knit_yarn_contact off")
     steps = opts.getInt("load_steps", 5, "load steps that take the crossings from "
                         "the template's to the natural knit's (all but the last "
                         "with a spring to the template's shape)", 1)

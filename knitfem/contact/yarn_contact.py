@@ -39,6 +39,10 @@ holds that pair at its rest separation, and a barrier there would fight the
 constraint. Pairs the template itself holds within half the band of
 touching (a tube's legs, 0.99 × 2r apart) are excluded the same way
 (``tight_at_rest`` edge pairs): no band above them could vanish at rest.
+The rest's gaps are read on ``Fabric.contact_X`` where the fabric has one (a
+natural knit's template at its own size, when X is that template scaled to
+a shorter loop: read on X, its gaps would close and a 10×10 seed at 91 % of
+its loop length left out pairs it then let through, 0.93 × 2r).
 d̂ is ``band`` × r, lowered
 below the smallest clearance of the remaining pairs at rest, so E_y = 0
 at rest: the rest state, rigid motions of it and the reduction stay exact.
@@ -162,6 +166,8 @@ class YarnContact:
         self.mesh = ipctk.CollisionMesh(_fortran(V), self.edges.astype(np.int32),
                                         np.zeros((0, 3), np.int32))
         edge = np.linalg.norm(V[self.edges[:, 1]] - V[self.edges[:, 0]], axis=1)
+        if fabric.contact_X is not None:     # the rest's gaps read elsewhere
+            V = self.S @ np.asarray(fabric.contact_X).reshape(-1, 3)
         self.patch = 2.0 * self_reach * r
         self.arc, self.perimeter = self._rest_arc(edge)
         self.edge_max = edge.max(initial=0.0)

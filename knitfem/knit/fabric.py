@@ -73,6 +73,11 @@ class Fabric:
     separation : float or None
         The distance the contacts hold between the two centrelines (2r for
         yarns that touch), or None for the rest's.
+    contact_X : ndarray or None
+        (N, 3) control points whose gaps the yarn contact takes for the
+        rest's (its band and the pairs it leaves out), where X's are not
+        the knit's: a natural knit's template at its own size, X being that
+        template scaled to another loop length; None for X.
     """
 
     X: np.ndarray
@@ -93,6 +98,7 @@ class Fabric:
     natural: bool = False
     start_X: np.ndarray = None
     separation: float = None
+    contact_X: np.ndarray = None
 
     def __post_init__(self):
         if self.yarn_start is None:
@@ -218,6 +224,7 @@ class Fabric:
 
     def rotated(self, R, centre):
         """The same fabric turned rigidly by the rotation R about ``centre``."""
-        X, S = ((P - centre) @ np.asarray(R).T + centre if P is not None else None
-                for P in (self.X, self.start_X))
-        return replace(self, X=X, start_X=S, frame=np.asarray(R) @ self.frame)
+        X, S, C = ((P - centre) @ np.asarray(R).T + centre if P is not None else None
+                   for P in (self.X, self.start_X, self.contact_X))
+        return replace(self, X=X, start_X=S, contact_X=C,
+                       frame=np.asarray(R) @ self.frame)

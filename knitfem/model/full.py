@@ -297,6 +297,18 @@ class FullModel:
         pattern so far (they were left out)."""
         return self.yarn_contact.missed if self.yarn_contact is not None else 0
 
+    def forget_path(self, x):
+        """The yarn contact taken afresh at x, as a model started at x would
+        take it: the Verlet list made at x and the tangent's pattern laid out
+        around x at the next ``stiffness``, so that what follows depends on x
+        alone, not on the path that led there (``run.relax``). Collective."""
+        yc = self.yarn_contact
+        if yc is None:
+            return
+        P = self.all_points(x)
+        yc.restore(yc.segment_pairs(P, yc.margin), yc.samples(P))
+        self.drop_tangent()
+
     def drop_tangent(self):
         """K's pattern to be laid out again, at the next ``stiffness``, around
         its state (counted in ``pattern_rebuilds``)."""

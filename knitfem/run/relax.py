@@ -33,11 +33,16 @@ from knitfem.knit.measure import curl, loop_length, munden, spacings, turned
 from knitfem.yarn import bspline
 
 __all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "stitch_length",
+           "shortest_loop",
            "knit_measures", "Ramp", "Relaxation",
            "stress_free", "VERSION"]
 
 VERSION = 2
 """Layout of relaxed.h5."""
+FIRST = 0.1
+"""The first load step's residual acceleration, a fraction of the last's."""
+QUANTUM = 1e-9
+"""The grid [m] the first load step's minimum is rounded to."""
 
 
 def yarn_lengths(fabric, P=None, nq=8):
@@ -58,20 +63,38 @@ def stitch_length(jersey, fabric, P=None):
     return loop_length(yarn_lengths(fabric, P), np.full(fabric.nyarn, jersey.cols))
 
 
+def shortest_loop(jersey, fabric, samples=8):
+    """The shortest loop length [m] the template ``fabric`` of the jersey
+    can be scaled to with no two yarns closer than 2r: ℓ₀ 2r / d, ℓ₀ its
+    own loop length and d the smallest distance between its yarns (or
+    parts of one yarn more than 8 r apart along it; ``gaps.YarnGaps``),
+    its crossings' 1.042 × 2r included. Below it the natural knit's rest
+    X, the spring a relaxation starts with, has yarns through one
+    another."""
+    from knitfem.contact.gaps import YarnGaps
+
+    S = fabric.curves(fabric.X).samples(samples)
+    r = fabric.radius
+    d = YarnGaps(S, r).pairs(S.points, 4.0 * r)[2]
+    return stitch_length(jersey, fabric) * 2 * r / (d.min() if len(d) else 2 * r)
+
+
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
     ``length`` a stitch (default: the template's): its rest X the template
     scaled uniformly to that length, its start X the template scaled by
     ``scale`` along the fabric's course, wale and thickness directions about
     its centroid (its loop length its own: ``Ramp`` takes it to ``length``);
-    crossings held 2r apart."""
+    crossings held 2r apart; the yarn contact's rest gaps the template's at
+    its own size (``Fabric.contact_X``: scaled down to a shorter loop,
+    its gaps would close and the contact leave those pairs out)."""
     ell = stitch_length(jersey, fabric)
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
     X = (fabric.X - centre) * ((length or ell) / ell) + centre
     S = F @ np.diag(scale) @ F.T
     return replace(fabric, X=X, start_X=(fabric.X - centre) @ S.T + centre,
-                   natural=True, separation=2 * fabric.radius)
+                   natural=True, separation=2 * fabric.radius, contact_X=fabric.X)
 
 
 class Ramp:
@@ -131,7 +154,21 @@ class Relaxation:
     stretched 20 % along its wales ended with k_w 4.1 % off the template's
     when the crossings started from the start's own, and 8 % with c₀ 100
     times weaker too; now they agree to round-off). The velocity stays
-    zero."""
+    zero.
+
+    Once the spring is weak the knit has many equilibria and the path to
+    them branches: a 12×12 jersey started from the template and from the
+    template stretched 20 % were 2·10⁻⁴ r apart after the third step and 61 r
+    apart at the end (k_w 24 % apart). So the path after the first step is
+    made a function of that step's minimum alone: it is converged to
+    ``FIRST`` × accel (10⁻⁵ m/s², ten times the round-off of the residual;
+    Newton's last steps, quadratic under c₀'s spring, leave the state
+    within ~10⁻¹⁶ m of its minimum), rounded to a grid of ``QUANTUM`` =
+    10⁻⁹ m (2·10⁻⁶ r, far below any figure a relaxation reports), and the
+    solver and the yarn contact start afresh from it (``forget_start``):
+    two starts then share every bit of the path after it, unless one of the
+    ~10⁴ coordinates lies within round-off of a grid line (a chance of about
+    10⁻⁷ each)."""
 
     name = "relax"
 
@@ -158,23 +195,39 @@ class Relaxation:
         if 1.0 - lam < 1e-9:
             lam = 1.0
         self.ramp.set(lam, lengths=1.0)
+        first = round(t / self.dt) == 0
         self.solver.guide_to(self.target, 0.0 if lam == 1.0 else
                              self.guide * 100.0 ** (-round(t / self.dt)))
         before = dict(self.solver.stats)
-        self.solver.minimize(x, self.accel if lam == 1.0 else 1e3 * self.accel)
+        self.solver.minimize(x, self.accel * (1.0 if lam == 1.0 else
+                                              FIRST if first else 1e3))
+        if first and lam < 1.0:
+            self.forget_start(x)
         v.zeroEntries()
         st = {k: self.solver.stats[k] - before[k] for k in before}
         return dict(dt=lam - t, newton=st["newton"], ksp=st["ksp"],
                     rejected=st["rejected"], linear_failures=0)
 
+    def forget_start(self, x):
+        """After the first load step: x rounded to a grid of ``QUANTUM``
+        metres and the solver and the yarn contact started afresh there, so
+        that the rest of the path is a function of that rounded state alone
+        (class docstring)."""
+        a = x.getArray()
+        a[:] = np.round(a / QUANTUM) * QUANTUM
+        self.system.forget_path(x)
+        self.solver.start_afresh(x)
+
     def state(self):
-        """The multipliers (this rank's) and the shift, for a checkpoint."""
+        """The multipliers (this rank's), the shift and its floor, for a
+        checkpoint."""
         return dict(mu=self.solver.mu.getArray(readonly=True).copy(),
-                    sigma=self.solver.sigma or 0.0)
+                    sigma=self.solver.sigma or 0.0, floor=self.solver.floor)
 
     def set_state(self, state):
         self.solver.mu.getArray()[:] = state["mu"]
         self.solver.sigma = float(state["sigma"]) or None
+        self.solver.floor = float(state["floor"])
 
 
 def stress_free(fabric):
@@ -183,7 +236,7 @@ def stress_free(fabric):
     if fabric.start_X is None:
         return fabric
     return replace(fabric, X=fabric.start_X, start_X=None, natural=False,
-                   separation=None)
+                   separation=None, contact_X=None)
 
 
 def knit_measures(jersey, fabric, P):
@@ -273,7 +326,9 @@ class RelaxedKnit:
 
     def apply(self, fabric):
         """The jersey's template ``fabric`` started from this relaxed knit:
-        a natural yarn with the relaxed rest lengths and crossings."""
+        a natural yarn with the relaxed rest lengths and crossings (the
+        yarn contact's rest gaps the template's, as in ``natural_fabric``)."""
         return replace(fabric, X=np.reshape(self.rest, (-1, 3)),
                        start_X=np.reshape(self.positions, (-1, 3)), natural=True,
+                       contact_X=fabric.X,
                        contacts=self.contacts, separation=self.separation)
