@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from knitfem.knit.measure import EDGES, curl, loop_length, munden, spacings, turned
+from knitfem.knit.measure import (EDGES, curl, loop_length, munden, spacings,
+                                  surface_normals, turned)
 from knitfem.knit.pattern import Jersey
 from knitfem.yarn import bspline
 
@@ -69,6 +70,34 @@ def test_a_ribs_spacings_are_those_in_its_plane():
     heads = np.stack([2.0 * c, 3.0 * r, np.where(c % 2, -1.0, 1.0)], axis=-1)
     assert spacings(heads)[1] == pytest.approx(np.sqrt(8.0), rel=1e-15, abs=0)  # measured 0
     assert spacings(heads, normal=[0, 0, 1]) == (3.0, 2.0)
+
+
+@pytest.mark.parametrize("repeat", [2, 4])
+def test_a_ribs_heads_do_not_tilt_its_tangent_plane(repeat):
+    """A 1×1 rib (KP) and a 2×2 rib (KKPP): heads on either side of the
+    fabric, its local normals the fabric's, its spacings those in its plane
+    (measured 0)."""
+    r, c = np.indices((6, 10))
+    knit = (c % repeat) < repeat // 2
+    heads = np.stack([2.0 * c, 3.0 * r, np.where(knit, 1.0, -1.0)], axis=-1)
+    n = surface_normals(heads)
+    assert np.abs(n[2:-2, 2:-2] - [0, 0, 1]).max() < 1e-15
+    assert spacings(heads, n) == pytest.approx((3.0, 2.0), rel=1e-15, abs=0)
+
+
+def test_a_rolled_swatchs_spacings_are_along_its_surface():
+    """Heads on a cylinder rolled along the courses (a stitch 30° of it) are
+    as far apart as their chords (measured 0), where the plane of the middle
+    shortens the wales by 13 % (cos 30°, the median turn of the middle's
+    wales)."""
+    r, c = np.indices((8, 10))
+    R, turn = 7e-3, np.radians(30.0) * (c - 4.5)
+    heads = np.stack([R * np.sin(turn), 3e-3 * r, R * (1 - np.cos(turn))], axis=-1)
+    chord = 2 * R * np.sin(np.radians(15.0))
+    assert spacings(heads, surface_normals(heads)) == pytest.approx(
+        (3e-3, chord), rel=1e-14, abs=0)
+    assert spacings(heads, [0, 0, 1])[1] == pytest.approx(np.cos(np.radians(30)) * chord,
+                                                          rel=1e-14, abs=0)
 
 
 def test_turned_is_the_rigid_motion_between_two_placements():

@@ -40,10 +40,12 @@ def test_natural_fabric_has_the_loop_length_asked_and_no_natural_curvature():
     el = YarnElements(fab.X, fab.connectivity(0, fab.nyarn), 1, 1, 1,
                       natural=fab.natural)
     assert not el.kappa0.any() and fab.separation == 2 * j.radius
-    # the start is the template stretched along the courses about its centroid
-    c = template.X.mean(axis=0)
-    assert np.allclose(fab.start_X - c, (template.X - c) * [1.2, 1.0, 1.0],
-                       rtol=0, atol=1e-17)  # measured 1.7e-18 (points to 17 mm)
+    # the start is the rest X (the template at 20 mm a stitch) stretched along
+    # the courses about its centroid
+    c = fab.X.mean(axis=0)
+    assert np.allclose(fab.start_X - c, (fab.X - c) * [1.2, 1.0, 1.0],
+                       rtol=0, atol=1e-17)  # measured 1.7e-18 (points to 19 mm)
+    assert fab.contact_X is template.X    # the yarn contact's rest gaps
     back = stress_free(fab)
     assert back.X is fab.start_X and not back.natural and back.separation is None
 
@@ -162,8 +164,8 @@ def test_rest_of_other_stitches_is_refused(tmp_path):
 def test_relax_options_take_effect(tmp_path):
     """-knit_loop_length sets the yarn a stitch (6 % shorter than the
     template's; the relaxed knit's within its strain), -knit_template_scale
-    the start (the series' first frame is the template stretched 1.01 along
-    the courses), -knit_load_steps the steps, -knit_rest_accel when it stops
+    the start (the series' first frame is the template at that loop length
+    stretched 1.01 along the courses), -knit_load_steps the steps, -knit_rest_accel when it stops
     (its residual below it, in fewer iterations than to the default)."""
     _, plain = relaxed(tmp_path, "plain", "-knit_loop_length", "0.0158")
     out, rec = relaxed(tmp_path, "relax", "-knit_loop_length", "0.0158",
@@ -177,10 +179,13 @@ def test_relax_options_take_effect(tmp_path):
     series = meshio.xdmf.TimeSeriesReader(str(out / "relaxed.xdmf"))
     series.read_points_cells()
     first = series.read_data(0)[1]["position"]
-    template = jersey_fabric(Jersey(3, 3)).curves(jersey_fabric(Jersey(3, 3)).X)
-    width = np.ptp(template.samples(8).points[:, 0])
-    # the start: the template stretched along the courses (measured 0)
-    assert np.ptp(first[:, 0]) == pytest.approx(1.01 * width, rel=5e-15, abs=0)
+    fab = jersey_fabric(Jersey(3, 3))
+    width = np.ptp(fab.curves(fab.X).samples(8).points[:, 0])
+    ell0 = stitch_length(Jersey(3, 3), fab)
+    # the start: the template at 0.0158 stretched along the courses
+    # (measured 2.2e-16)
+    assert np.ptp(first[:, 0]) == pytest.approx(1.01 * width * 0.0158 / ell0,
+                                                rel=1e-14, abs=0)
 
 
 def test_a_loop_too_short_for_the_yarn_is_refused(tmp_path):

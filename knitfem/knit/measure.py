@@ -3,7 +3,8 @@
 A knit's dimensions are read from its loop heads H (courses × wales, 3): the
 course spacing c_s is the distance between the heads of consecutive
 courses, the wale spacing w_s the distance between neighbouring heads in a
-course, both the median over the middle of the swatch (its edges curl). With
+course, both in the fabric's tangent plane there and the median over the
+middle of the swatch (its edges curl). With
 ℓ the yarn length a stitch (the loop length), Munden's dimensionless
 constants are
 
@@ -25,7 +26,8 @@ courses (bottom and top) to the back.
 
 import numpy as np
 
-__all__ = ["EDGES", "spacings", "munden", "curl", "loop_length", "turned"]
+__all__ = ["EDGES", "spacings", "surface_normals", "munden", "curl",
+           "loop_length", "turned"]
 
 EDGES = ("bottom", "top", "left", "right")
 
@@ -38,23 +40,56 @@ def _middle(n):
     return slice(lo, hi)
 
 
+def surface_normals(heads, reach=2):
+    """Unit normals (courses, wales, 3) of the fabric at its loop heads H:
+    (H[r, c+k] − H[r, c−k]) × (H[r+k, c] − H[r−k, c]), k = ``reach``
+    (one-sided at the edges), normalised (0 where a swatch of one course or
+    wale has none). Two heads k apart are of one kind in every pattern whose
+    repeat divides 2k (ribs, garter, seed for k = 2), so a rib's knit and
+    purl heads on either side of the fabric do not tilt it; on a swatch
+    curled with a uniform curvature the symmetric difference is the tangent
+    at the middle head."""
+    H = np.asarray(heads, dtype=float)
+    R, C = H.shape[:2]
+    c, r = np.arange(C), np.arange(R)
+    u = H[:, np.minimum(c + reach, C - 1)] - H[:, np.maximum(c - reach, 0)]
+    v = H[np.minimum(r + reach, R - 1)] - H[np.maximum(r - reach, 0)]
+    n = np.cross(u, v)
+    size = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.divide(n, size, out=np.zeros_like(n), where=size > 0)
+
+
 def spacings(heads, normal=None):
     """(course spacing, wale spacing) [m]: medians over the middle of the
     swatch of |H[r+1, c] − H[r, c]| and |H[r, c+1] − H[r, c]| for loop heads
     ``heads`` (courses, wales, 3), in the fabric's plane where its unit
-    ``normal`` (the thickness direction) is given: a rib's knit and purl
-    heads lie on either side of it, and its wales are as far apart as the
-    width they take; NaN where the swatch has one course (one wale)."""
+    ``normal`` is given: one (3,) for a flat swatch, or one a head
+    (courses, wales, 3; ``surface_normals``) for its tangent plane there, a
+    difference then projected on the plane normal to the mean of its two
+    heads' normals. A rib's knit and purl heads lie on either side of the
+    fabric, and its wales are as far apart as the width they take; a curled
+    swatch's heads are as far apart as along its surface. NaN where the
+    swatch has one course (one wale)."""
     H = np.asarray(heads, dtype=float)
     rows, cols = _middle(H.shape[0]), _middle(H.shape[1])
     mid = H[rows, cols]
+    up, across = np.diff(mid, axis=0), np.diff(mid, axis=1)
     if normal is not None:
-        n = np.asarray(normal, dtype=float)
-        mid = mid - np.einsum("...d,d->...", mid, n)[..., None] * n
-    up = np.linalg.norm(np.diff(mid, axis=0), axis=-1)
-    across = np.linalg.norm(np.diff(mid, axis=1), axis=-1)
+        n = np.broadcast_to(np.asarray(normal, dtype=float), H.shape)[rows, cols]
+        up = _in_plane(up, n[:-1], n[1:])
+        across = _in_plane(across, n[:, :-1], n[:, 1:])
+    up, across = (np.linalg.norm(d, axis=-1) for d in (up, across))
     return (float(np.median(up)) if up.size else np.nan,
             float(np.median(across)) if across.size else np.nan)
+
+
+def _in_plane(d, a, b):
+    """The differences d (..., 3) less their parts along the mean of the
+    unit normals a and b of their two ends (b turned to agree with a)."""
+    side = np.where(np.einsum("...d,...d->...", a, b) < 0, -1.0, 1.0)
+    m = a + side[..., None] * b
+    m /= np.linalg.norm(m, axis=-1, keepdims=True)
+    return d - np.einsum("...d,...d->...", d, m)[..., None] * m
 
 
 def munden(loop_length, course_spacing, wale_spacing):

@@ -29,7 +29,8 @@ from dataclasses import dataclass, replace
 import h5py
 import numpy as np
 
-from knitfem.knit.measure import curl, loop_length, munden, spacings, turned
+from knitfem.knit.measure import (curl, loop_length, munden, spacings,
+                                  surface_normals)
 from knitfem.yarn import bspline
 
 __all__ = ["RelaxedKnit", "natural_fabric", "yarn_lengths", "stitch_length",
@@ -82,10 +83,12 @@ def shortest_loop(jersey, fabric, samples=8):
 def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     """``fabric`` (the jersey's template) as a naturally straight yarn of
     ``length`` a stitch (default: the template's): its rest X the template
-    scaled uniformly to that length, its start X the template scaled by
+    scaled uniformly to that length, its start that rest scaled by
     ``scale`` along the fabric's course, wale and thickness directions about
-    its centroid (its loop length its own: ``Ramp`` takes it to ``length``);
-    crossings held 2r apart; the yarn contact's rest gaps the template's at
+    its centroid (the yarn at its rest length where ``scale`` is 1: the
+    template at its own size, 14 % short of a seed's loop length, started a
+    jersey with 3 J of compression, and its first load step buckled it into
+    contact with no descent direction); crossings held 2r apart; the yarn contact's rest gaps the template's at
     its own size (``Fabric.contact_X``: scaled down to a shorter loop,
     its gaps would close and the contact leave those pairs out)."""
     ell = stitch_length(jersey, fabric)
@@ -93,7 +96,7 @@ def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     F = fabric.frame
     X = (fabric.X - centre) * ((length or ell) / ell) + centre
     S = F @ np.diag(scale) @ F.T
-    return replace(fabric, X=X, start_X=(fabric.X - centre) @ S.T + centre,
+    return replace(fabric, X=X, start_X=(X - centre) @ S.T + centre,
                    natural=True, separation=2 * fabric.radius, contact_X=fabric.X)
 
 
@@ -248,8 +251,8 @@ def knit_measures(jersey, fabric, P):
     yarn = np.repeat(np.arange(fabric.nyarn), jersey.cols)
     cols, b = fabric.point_rows(yarn, np.tile(jersey.heads(0), fabric.nyarn))
     heads = np.einsum("na,nai->ni", b, P[cols]).reshape(fabric.nyarn, jersey.cols, 3)
-    # in the plane of the knit as it lies now, whatever its rigid motion
-    cs, ws = spacings(heads, turned(fabric.X, P) @ fabric.frame[:, 2])
+    # in the knit's tangent plane at each head, however it curls
+    cs, ws = spacings(heads, surface_normals(heads))
     kc, kw, ks = munden(ell, cs, ws)
     rec = dict(loop_length_m=ell, course_spacing_m=cs, wale_spacing_m=ws,
                k_c=kc, k_w=kw, k_s=ks)
