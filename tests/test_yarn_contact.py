@@ -362,25 +362,3 @@ def test_a_natural_knit_of_a_shorter_loop_keeps_its_templates_gaps():
     assert shorter.dhat == own.dhat
     read_on_X = YarnContact(replace(short, contact_X=None), 1.0)
     assert read_on_X.tight_at_rest > 100          # measured 724
-
-
-def test_the_pairs_left_out_follow_a_crossing():
-    """Moved two segments along yarn 0, a crossing's window of pairs left
-    out goes with it: the pairs near where it was may touch again, those
-    near where it is may not; moved back, the set is the one it started
-    with."""
-    fab = crossing(gap=0.5, nseg=8)
-    fab.contacts = (np.array([0]), np.array([4.0]), np.array([1]), np.array([4.0]))
-    yc = YarnContact(fab, 1.0)
-    start = yc.excluded.copy()
-    a = np.flatnonzero((yc.sample_yarn == 0) & (np.abs(yc.sample_param - 4.0) < 0.3))
-    b = np.flatnonzero((yc.sample_yarn == 1) & (np.abs(yc.sample_param - 4.0) < 0.3))
-    c = np.flatnonzero((yc.sample_yarn == 0) & (np.abs(yc.sample_param - 6.0) < 0.3))
-    i, j = np.repeat(a, len(b)), np.tile(b, len(a))
-    k, m = np.repeat(c, len(b)), np.tile(b, len(c))
-    assert not yc.samples_may_touch(i, j).any() and yc.samples_may_touch(k, m).all()
-    yc.exclude_near([6.0], [4.0])
-    assert yc.samples_may_touch(i, j).all() and not yc.samples_may_touch(k, m).any()
-    assert yc.excluded_at.tolist() == [[6.0, 4.0]]
-    yc.exclude_near([4.0], [4.0])
-    assert np.array_equal(yc.excluded, start)

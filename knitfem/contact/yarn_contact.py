@@ -172,20 +172,17 @@ class YarnContact:
         self.arc, self.perimeter = self._rest_arc(edge)
         self.edge_max = edge.max(initial=0.0)
         self._patch_ids = self._patches()
-        ya, sa, yb, sb = fabric.contacts
-        self.window, self.crossing_yarns = window, (np.asarray(ya), np.asarray(yb))
-        self.turns = (np.where(fabric.closed[ya], fabric.yarn_nseg[ya], 0),
-                      np.where(fabric.closed[yb], fabric.yarn_nseg[yb], 0))
-        self.tight, self.excluded_at = np.zeros(0, np.int64), None
-        self.exclude_near(sa, sb)
+        self.excluded = self._excluded(fabric, window)
+        self.mesh.can_collide = self._filter()
         # pairs the template itself brings within half the band (a tube's
         # closing stitch: 0.99 x 2r) are left out: no band above them vanishes
         e, f = self.close_edges(V, self.dmin + 0.5 * band * r)
         self.tight_at_rest = len(e)
         if len(e):
             a, b = self.edges[e], self.edges[f]
-            self.tight = self._keys(np.repeat(a, 2, axis=1).ravel(), np.tile(b, 2).ravel())
-            self.exclude_near(sa, sb)
+            self.excluded = np.union1d(self.excluded, self._keys(
+                np.repeat(a, 2, axis=1).ravel(), np.tile(b, 2).ravel()))
+            self.mesh.can_collide = self._filter()
         self.collisions, self.built, self.active = ipctk.NormalCollisions(), None, None
         self.candidates_at, self.moved_at, self.candidate_builds = None, None, 0
         clearance = self._clearance(V, band * r)
@@ -233,27 +230,10 @@ class YarnContact:
         """Sorted unique keys min · nsamples + max of sample pairs (a, b)."""
         return np.unique(np.minimum(a, b) * len(self.sample_yarn) + np.maximum(a, b))
 
-    def exclude_near(self, sa, sb):
-        """Leave out the sample pairs near the crossings at the parameters
-        (sa, sb) of their two yarns (``_excluded``), along a closed yarn
-        across its seam and those the template held tight, in place of the
-        pairs near where the crossings were: sliding crossings carry their
-        windows with them (``FullModel.begin_step``). The Verlet list is
-        made again at its next use."""
-        seam_a, seam_b = self._seam_pairs()
-        near = self._excluded(np.asarray(sa, float), np.asarray(sb, float))
-        self.excluded = np.union1d(np.union1d(near, self._keys(seam_a, seam_b)),
-                                   self.tight)
-        self.excluded_at = np.stack([sa, sb], axis=1).astype(float)
-        self.mesh.can_collide = self._filter()
-        self.built = self.moved_at = self.candidates_at = None
-
-    def _excluded(self, sa, sb):
-        """Keys (``_keys``) of the sample pairs near the crossings at (sa, sb):
-        yarn a's samples within ``window`` of s_a against yarn b's within
-        ``window`` of s_b."""
-        window = self.window
-        ya, yb = self.crossing_yarns
+    def _excluded(self, fabric, window):
+        """Keys (``_keys``) of the sample pairs near a crossing, and along a
+        closed yarn across its seam (``_seam_pairs``)."""
+        ya, sa, yb, sb = fabric.contacts
         # samples sorted by (yarn, parameter): a crossing's window on a yarn,
         # |param − s| < window, is one run of them, found by bisection
         span = self.sample_param.max(initial=0.0) + 2 * window + 1.0
@@ -266,12 +246,14 @@ class YarnContact:
 
         # on a closed yarn a window reaches across its seam: the crossing is
         # taken again a whole yarn (nseg) before and after, on either side
-        turn_a, turn_b = self.turns
+        ya, yb = np.asarray(ya), np.asarray(yb)
+        turn_a = np.where(fabric.closed[ya], fabric.yarn_nseg[ya], 0)
+        turn_b = np.where(fabric.closed[yb], fabric.yarn_nseg[yb], 0)
         shift = np.array([-1, 0, 1])
         n = len(ya)
-        sa = np.broadcast_to(sa[:, None, None] + shift[:, None]
+        sa = np.broadcast_to(np.asarray(sa)[:, None, None] + shift[:, None]
                              * turn_a[:, None, None], (n, 3, 3)).ravel()
-        sb = np.broadcast_to(sb[:, None, None] + shift
+        sb = np.broadcast_to(np.asarray(sb)[:, None, None] + shift
                              * turn_b[:, None, None], (n, 3, 3)).ravel()
         ya, yb = np.repeat(ya, 9), np.repeat(yb, 9)
         (a0, a1), (b0, b1) = run(ya, sa), run(yb, sb)
@@ -279,7 +261,8 @@ class YarnContact:
         c = np.repeat(np.arange(len(na)), na * nb)        # every (a, b) pair
         k = np.arange(len(c)) - np.repeat(np.cumsum(na * nb) - na * nb, na * nb)
         a, b = a0[c] + k // nb[c], b0[c] + k % nb[c]
-        return self._keys(a, b)
+        seam_a, seam_b = self._seam_pairs()
+        return self._keys(np.append(a, seam_a), np.append(b, seam_b))
 
     def _seam_pairs(self):
         """Sample pairs (a, b) of a closed yarn less than L apart along it

@@ -43,10 +43,6 @@ from knitfem.yarn.elements import YarnElements
 
 __all__ = ["Material", "FullModel", "applied_forces"]
 
-FOLLOW = 0.5
-"""A sliding crossing that moved this fraction of the yarn contact's
-exclusion window from where it was centred carries the window with it."""
-
 EV_FORCES = PETSc.Log.Event("knitForces")
 EV_TANGENT = PETSc.Log.Event("knitTangent")
 EV_ASSEMBLY = PETSc.Log.Event("knitAssembly")
@@ -150,7 +146,6 @@ class FullModel:
             self.sliding = sliding.crossings(fabric, slide_margin) \
                 if contacts == "sliding" else None
             self.window_moves = 0        # times the sliding windows moved
-            self.exclusion_moves = 0     # times the yarn contact's followed them
             self._relayout = False       # C's pattern changed since the last step
             self._pairs_given = False    # the tangent's pairs restored, not found
             if self.sliding is not None:
@@ -221,12 +216,8 @@ class FullModel:
         crossings start the search for their point from there, and their
         windows move to follow them (``move_windows``); the tangent's pattern
         is laid out again around x when the yarn pairs near contact no longer
-        fit it. The yarn contact's pairs left out near each crossing follow a
-        sliding crossing once it has moved half their window (``FOLLOW``):
-        left behind, they let two yarns through each other where the
-        crossing was and put the barrier against the crossing where it is.
-        Returns whether C's or K's pattern changed (the Newton matrix must
-        then be made again). Collective."""
+        fit it. Returns whether C's or K's pattern changed (the Newton matrix
+        must then be made again). Collective."""
         if self.barrier is not None:
             self.barrier.lag(self.yarn_points(x), t)
         move, stuck = self.constraints.commit(x)
@@ -237,11 +228,6 @@ class FullModel:
                                   f"their yarn", curable=False)
         relayout, self._relayout = self._relayout, False
         yc = self.yarn_contact
-        if yc is not None and self.sliding is not None:
-            s = self.constraints.sliding_parameters()[:, :2]
-            if np.abs(s - yc.excluded_at).max(initial=0.0) > FOLLOW * yc.window:
-                yc.exclude_near(s[:, 0], s[:, 1])
-                self.exclusion_moves += 1
         if yc is None or self._tangent is None or yc.fits(self.all_points(x)):
             return relayout
         self.drop_tangent()
@@ -555,11 +541,9 @@ class FullModel:
         ``slide_reanchored``, how often a crossing's reference tangents
         moved (``sliding.SlidingCrossings.commit``), ``slide_locked``, how
         many crossings are locked at x (their yarns nearly parallel there),
-        ``slide_window_moves``, how often the windows moved and C's
-        pattern was laid out again (``move_windows``), and
-        ``slide_exclusion_moves``, how often the yarn contact's excluded
-        pairs followed the crossings (``begin_step``); {} for fixed
-        crossings (collective)."""
+        and ``slide_window_moves``, how often the windows moved and C's
+        pattern was laid out again (``move_windows``); {} for fixed crossings
+        (collective)."""
         if self.constraints.diagonal_curvature:
             return {}
         self.constraints.commit(x)
@@ -570,8 +554,7 @@ class FullModel:
                 self.constraints.reanchored),
             slide_locked=self.comm.tompi4py().allreduce(
                 int(np.count_nonzero(self.constraints.local.locked))),
-            slide_window_moves=self.window_moves,
-            slide_exclusion_moves=self.exclusion_moves)
+            slide_window_moves=self.window_moves)
 
     def strain(self, x):
         """Green–Lagrange axial strain at every local quadrature point."""
