@@ -88,9 +88,10 @@ def natural_fabric(jersey, fabric, length=None, scale=(1.0, 1.0, 1.0)):
     its centroid (the yarn at its rest length where ``scale`` is 1: the
     template at its own size, 14 % short of a seed's loop length, started a
     jersey with 3 J of compression, and its first load step buckled it into
-    contact with no descent direction); crossings held 2r apart; the yarn contact's rest gaps the template's at
-    its own size (``Fabric.contact_X``: scaled down to a shorter loop,
-    its gaps would close and the contact leave those pairs out)."""
+    contact with no descent direction); crossings held 2r apart; the yarn
+    contact's rest gaps the template's at its own size
+    (``Fabric.contact_X``: scaled down to a shorter loop, its gaps would
+    close and the contact leave those pairs out)."""
     ell = stitch_length(jersey, fabric)
     centre = fabric.X.mean(axis=0)
     F = fabric.frame
@@ -198,13 +199,13 @@ class Relaxation:
         if 1.0 - lam < 1e-9:
             lam = 1.0
         self.ramp.set(lam, lengths=1.0)
-        first = round(t / self.dt) == 0
+        k = round(t / self.dt)
         self.solver.guide_to(self.target, 0.0 if lam == 1.0 else
-                             self.guide * 100.0 ** (-round(t / self.dt)))
+                             self.guide * 100.0 ** (-k))
         before = dict(self.solver.stats)
         self.solver.minimize(x, self.accel * (1.0 if lam == 1.0 else
-                                              FIRST if first else 1e3))
-        if first and lam < 1.0:
+                                              FIRST if k == 0 else 1e3))
+        if k == 0 and lam < 1.0:
             self.forget_start(x)
         v.zeroEntries()
         st = {k: self.solver.stats[k] - before[k] for k in before}

@@ -100,6 +100,7 @@ def stretch(comm, jersey, along, strains, accel=1e-4):
     finally:
         x.destroy()
         solver.destroy()
+        system.destroy()
     strain = np.r_[0.0, strains]
     force = np.diff(energy) / (L * np.diff(strain))
     mid = 0.5 * (strain[1:] + strain[:-1])
