@@ -469,7 +469,7 @@ class NewtonStepper:
         self.xe and ε̇_{n+1} in self.v; raises SimulationError on failure."""
         s = self.system
         self.h = h
-        s.move_bodies(self.t_n, self.t_n + h)   # bodies where they are at its end
+        s.move_bodies(self.t_n, self.t_n + h, self.xn)  # bodies where they are at its end
         self.coefficients(h)
         c = self.control
         if c.adaptive:
@@ -664,7 +664,9 @@ class BackwardEuler(NewtonStepper):
     ``guess="start"``, ε̇ = 0: Newton from the step's start ε_n, which a
     knit on a body can always reach (an extrapolation drives a falling knit
     into the body's barrier: the 12×12 reduced drape takes 1 542 Newton
-    iterations from it, 825 from the start). Local error e = ½ h² ε̈
+    iterations from it, 825 from the start), carried with the moving bodies
+    near it (the system's ``carry``, when it has one): a sleeve goes with
+    the arm that turns inside it, sticking where it was. Local error e = ½ h² ε̈
     (``PositionHistory`` with c = ½; on the first step ½ h (ε̇_{n+1} − ε̇_n)).
     """
 
@@ -691,6 +693,9 @@ class BackwardEuler(NewtonStepper):
     def predict(self, h, v):
         if self.guess == "start":
             v.zeroEntries()
+            carry = getattr(self.system, "carry", None)
+            if carry is not None:
+                carry(self.xn, self.t_n, self.t_n + h, v, 1.0 / self.kappa)
         else:
             v.waxpy(h, self.a, self.vn)
 

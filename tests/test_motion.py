@@ -1,7 +1,8 @@
 """Bodies that move: the keyframed motion passes through its keyframes and
 is C¹, a posed body is the rest body moved rigidly, a body moving at a
-constant velocity carries a resting yarn by friction, and the barrier with
-the carried friction is still one potential (finite differences)."""
+constant velocity carries a resting yarn by friction, the barrier with
+the carried friction is still one potential (finite differences), and an
+implicit step's guess carries the points near a moving body with it."""
 
 import json
 
@@ -11,7 +12,8 @@ from petsc4py import PETSc
 
 from helpers import barrier_differences, jersey, run
 from knitfem.contact.colliders import Capsule, Plane, Sphere
-from knitfem.contact.motion import Kinematic, Motion, load_motions, rotation_matrix
+from knitfem.contact.motion import (Kinematic, Motion, carried, load_motions,
+                                   rotation_matrix)
 from knitfem.knit.fabric import Fabric
 from knitfem.model.full import FullModel, Material
 
@@ -159,3 +161,36 @@ def test_carried_friction_forces_and_tangent_match_finite_differences():
     assert dP == pytest.approx(gd, rel=3e-7)
     assert np.allclose(Kd, fd, rtol=0, atol=4e-8 * np.abs(fd).max())
     model.destroy()
+
+
+def test_points_are_carried_by_the_bodies_near_them():
+    """``carried``: with one body, every point goes as a point of the body
+    would (x¹ = R₁R₀ᵀ(x − s₀) + s₁, to round-off); beside a body at rest,
+    a point much nearer the moving body goes with it, one much nearer the
+    resting body stays, and one as near to both goes half way; without a
+    moving body there is nothing to carry."""
+    motion = Motion(**KEYS)
+    arm = Kinematic(Capsule(np.zeros(3), np.array([0.0, 0.0, 0.05]), 0.01), motion)
+    rng = np.random.default_rng(5)
+    x = 0.03 * rng.standard_normal((40, 3))
+    (R0, s0), (R1, s1) = motion.pose(0.31), motion.pose(0.37)
+    rigid = (x - s0) @ (R1 @ R0.T).T + s1 - x
+    d = carried((arm,), x, 0.31, 0.37, length=5e-3)
+    # measured 0 (the points move up to 9 mm)
+    assert np.allclose(d, rigid, rtol=0, atol=1e-16)
+    rest = Sphere(np.array([0.0, 0.0, -0.5]), 0.01)
+    near_arm = np.array([[0.0, 0.012, 0.02]])            # 2 mm from the arm
+    near_rest = np.array([[0.0, 0.0, -0.488]])           # 2 mm from the sphere
+    both = [carried((arm, rest), p, 0.31, 0.37, length=5e-3)[0]
+            for p in (near_arm, near_rest)]
+    # 0.49 m further from the other body, 98 lengths: e^-98
+    assert np.allclose(both[0], carried((arm,), near_arm, 0.31, 0.37, 5e-3)[0],
+                       rtol=0, atol=1e-40)
+    assert np.abs(both[1]).max() < 1e-40
+    twin = Kinematic(Sphere(np.array([0.0, 0.0, -0.5]), 0.01),
+                     Motion([0.0, 1.0], [[0, 0, 0], [0.01, 0, 0]]))
+    mid = np.array([[0.02, 0.0, -0.5]])                   # 1 cm from both spheres
+    half = carried((Sphere(np.array([0.04, 0.0, -0.5]), 0.01), twin), mid, 0.0, 0.5, 5e-3)
+    # measured 4.3e-19 m
+    assert half[0] == pytest.approx([0.0025, 0.0, 0.0], abs=1e-17)
+    assert carried((rest,), x, 0.0, 1.0, 5e-3) is None

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Motion", "Kinematic", "rotation_matrix", "load_motions", "moving"]
+__all__ = ["Motion", "Kinematic", "rotation_matrix", "load_motions", "moving", "carried"]
 
 
 def rotation_matrix(theta):
@@ -147,6 +147,36 @@ class Kinematic:
 def moving(body):
     """Whether ``body`` moves (a ``Kinematic`` one)."""
     return isinstance(body, Kinematic)
+
+
+def carried(bodies, x, t0, t1, length):
+    """How far the points x (n, 3) go from t0 to t1 with the bodies near
+    them: each point is carried by every body b as a point of it would be,
+    x¹_b = R₁ R₀ᵀ (x − s₀) + s₁ ((R, s) b's pose at t0 and t1; a body at rest
+    does not carry), weighted by a soft minimum of the distances φ_b(x) at
+    t0,
+
+        d(x) = Σ_b w_b (x¹_b − x),   w_b ∝ exp(−φ_b(x) / ``length``),
+
+    so a garment round a moving limb goes with it and blends smoothly into
+    the bodies at rest beside it (a guess for an implicit step: Newton from
+    there finds the yarns still in contact and sticking where they were).
+    Returns d (n, 3), or None when no body moves."""
+    if not any(moving(body) for body in bodies):
+        return None
+    x = np.asarray(x, dtype=float)
+    phi = np.empty((len(bodies), len(x)))
+    moves = []
+    for b, body in enumerate(bodies):
+        if not moving(body):
+            phi[b] = body.phi(x)
+            continue
+        (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
+        phi[b] = body.rest.moved(R0, s0).phi(x)
+        moves.append((b, (x - s0) @ (R1 @ R0.T).T + s1 - x))
+    w = np.exp(-(phi - phi.min(axis=0)) / length)
+    w /= w.sum(axis=0)
+    return sum(w[b, :, None] * move for b, move in moves)
 
 
 def load_motions(path, bodies):

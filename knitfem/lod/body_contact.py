@@ -18,7 +18,8 @@ at least 2 r). The set is formed again when the step's end time changes
 (a retried step) and at every step; after a step, an element left out
 whose bound at the end state comes within the gap refuses the step
 (``missed``), with the allowance doubled, and the step is solved again on
-the larger set. Friction is lagged on the set at the step's start.
+the larger set; a part of a step (a step halved) forms it about its own
+start too. Friction is lagged on the set at the step's start.
 """
 
 import numpy as np
@@ -94,16 +95,19 @@ class ActiveContact:
         self.start = (np.array(alpha), t0)
         self.window, self.step_h = None, None
 
-    def move(self, t0, t1):
-        """The step (or a part of it) runs from t0 to t1: the bodies posed at
-        t1; the set formed again for a new step end, and friction lagged on
-        it from the step's start."""
+    def move(self, t0, t1, alpha=None):
+        """The step (or a part of it, from α = ``alpha``) runs from t0 to t1:
+        the bodies posed at t1; the set formed again for a new step end,
+        about the step's start and the part's, and friction lagged on it
+        from the step's start."""
         alpha0, ts = self.start
         if self.window is None or self.window[1] != t1:
             self.barrier.at(ts)
             X0 = self.G @ alpha0
             reach = self.barrier.reach(ts, max(t1, ts), X0) if self.barrier.moves else 0.0
             bound = self._bound(X0)
+            if alpha is not None:
+                bound = np.minimum(bound, self._bound(self.G @ alpha))
             e = np.flatnonzero(bound < self.gap + reach + self.allowance)
             if not np.array_equal(e, self.active):
                 self._use(e)

@@ -148,7 +148,8 @@ def reduced_from_options(opts, full, embedding):
     sums every yarn element (``full`` was built without its own stretch
     under -knit_stretch shell, ``stretch_options``)."""
     from knitfem.lod.body_contact import ActiveContact
-    from knitfem.lod.sampling import SampledElements, over_ranks, quadrature_set, sampled_set
+    from knitfem.lod.sampling import (SampledElements, cached_quadrature_set, over_ranks,
+                                      sampled_set)
     from knitfem.lod.shell import ShellStretch
 
     size = embedding.volume.size
@@ -164,11 +165,12 @@ def reduced_from_options(opts, full, embedding):
     if kind == "exact":
         return ReducedModel(full, embedding, shell=shell)
     if kind == "quadrature":
-        elements, weights, report = quadrature_set(full, embedding)
-        report.update(source="no training", cached=False)
+        elements, weights, report = cached_quadrature_set(full, embedding)
+        made = "measured"
     else:
         elements, weights, report = sampled_set(full, embedding, tol)
-        report["source"] = f"{'cached' if report['cached'] else 'trained'} {report['cache']}"
+        made = "trained"
+    report["source"] = f"{'cached' if report['cached'] else made} {report['cache']}"
     contact = ActiveContact(full, embedding) if full.barrier is not None else None
     model = ReducedModel(full, embedding,
                          SampledElements(full, embedding, elements, weights),
@@ -290,7 +292,7 @@ class EmbeddedModel:
         if self.full.barrier is not None:
             self.full.begin_step(self.full_state(q, self.eps), t)
 
-    def move_bodies(self, t0, t1):
+    def move_bodies(self, t0, t1, q=None):
         self.full.move_bodies(t0, t1)
 
     def yarn_move(self, dq):
@@ -478,10 +480,18 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         self.contact.begin(self._all(q), t)
         return False
 
-    def move_bodies(self, t0, t1):
+    def move_bodies(self, t0, t1, q=None):
         if self.contact is None:
             return super().move_bodies(t0, t1)
-        self.contact.move(t0, t1)
+        self.contact.move(t0, t1, None if q is None else self._all(q))
+
+    def carry(self, q, t0, t1, v, scale):
+        """v += ``scale`` × the move of the volume's control points α = q with
+        the moving bodies near them from t0 to t1 (``FullModel.carried``): the
+        embedded yarns, Γα, go along (local, v a Vec like q)."""
+        d = self.full.carried(q.getArray(readonly=True).reshape(-1, 3), t0, t1)
+        if d is not None:
+            v.getArray()[:] += scale * d.ravel()
 
     def step_limit(self, q, dq):
         if self.contact is None:

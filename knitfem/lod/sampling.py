@@ -53,7 +53,8 @@ from knitfem.yarn.kernels import yarn_kernels
 from knitfem.lod.grouped_tangent import GroupedTangent
 from knitfem.yarn.elements import YarnElements
 
-__all__ = ["SampledElements", "sampled_set", "quadrature_set", "over_ranks"]
+__all__ = ["SampledElements", "sampled_set", "quadrature_set", "cached_quadrature_set",
+           "over_ranks"]
 
 TRAINED_BY = ("lod/sampling.py", "lod/volume.py", "yarn/elements.py",
               "yarn/kernels.py", "yarn/_compiled.pyx", "yarn/bspline.py")
@@ -372,20 +373,37 @@ def cache_dir():
 def sampled_set(full, embedding, tol, subset=None):
     """(elements, weights, report) of the rank's sampled set (drawn from the
     elements ``subset`` when given, see ``train``): from the cache when it
-    holds this problem's, else trained and cached (a cache that cannot be
-    written is only not used)."""
+    holds this problem's, else trained and cached (``cached_set``)."""
+    return cached_set(cache_key(full, embedding, tol, subset),
+                      lambda: train(full, embedding, tol, subset=subset))
+
+
+def cached_quadrature_set(full, embedding):
+    """``quadrature_set`` with its report: from the cache when it holds
+    this problem's (the force errors it reports cost what a few Newton
+    iterations of a large garment do), else made and cached."""
+    return cached_set(cache_key(full, embedding, "quadrature"),
+                      lambda: quadrature_set(full, embedding))
+
+
+def cached_set(key, make):
+    """(elements, weights, report) from the cache file of ``key``, else
+    ``make()``'s, written there (a cache that cannot be written is only
+    not used); the report says where (``cache``) and whether it was read
+    (``cached``)."""
     from knitfem.io import atomic_write
 
-    path = os.path.join(cache_dir(), cache_key(full, embedding, tol, subset) + ".npz")
+    path = os.path.join(cache_dir(), key + ".npz")
     try:
         with np.load(path) as f:
             report = dict(zip(f["keys"].tolist(), f["values"].tolist()))
-            report.update((k, int(report[k])) for k in ("elements", "of", "candidates"))
+            report.update((k, int(report[k])) for k in ("elements", "of", "candidates")
+                          if k in report)
             report.update(cache=path, cached=True)
             return f["elements"], f["weights"], report
     except (OSError, KeyError, ValueError, zipfile.BadZipFile):
-        pass                          # none, or unreadable: trained again
-    elements, weights, report = train(full, embedding, tol, subset=subset)
+        pass                          # none, or unreadable: made again
+    elements, weights, report = make()
     keys = [k for k, v in report.items() if isinstance(v, (int, float))]
     try:
         os.makedirs(cache_dir(), exist_ok=True)
