@@ -253,10 +253,23 @@ class NewtonStepper:
     Steps are fixed (``dt``) unless ``control`` is adaptive. A failed Newton
     solve at a fixed step is retried as two half steps, down to
     dt / 2^max_halvings; under step control it is a rejected step.
+
+    The step as a minimum. Without constraint rows, a method whose forces
+    are taken at the end point (w = 1: backward Euler, BDF2) solves F_u = 0
+    as the minimum of
+
+        Φ(v) = ½ (v − v̂)ᵀ M (v − v̂) + (σ/κ) Π(ε̂ + κ v) + ½ σ c_d vᵀ M v,
+
+    ∂Φ/∂v = F_u, Π = E + D − Q_gᵀ ε the system's ``potential`` (its
+    barriers and lagged friction D included). SNES gets Φ as its objective,
+    which the line searches that take one use
+    (``-<kind>_snes_linesearch_type bt``: Armijo backtracking on Φ, as in
+    IPC's incremental potential), and the default ``basic`` ignores.
     """
 
     order = 1
     newton_ctol = 0.0
+    minimises = False                   # w = 1: a step is the minimum of Φ
     TANGENTS = ("auto", "mip", "exact")
 
     def __init__(self, system, dt, control=None, tangent="exact"):
@@ -295,6 +308,9 @@ class NewtonStepper:
         self.snes.setFromOptions()
         if self.bodies or self.yarn_contact:
             self.snes.setLineSearchPreCheck(self._limit)
+        if self.minimises and not self.saddle.constrained and \
+                getattr(system, "potential", None) is not None:
+            self.snes.setObjective(self._objective)
         self.missing = None                 # tangent entries missed before a solve
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
@@ -430,6 +446,19 @@ class NewtonStepper:
             fu += self.tmp.getArray(readonly=True)
             s.constraint_residual(self.xe, self.Cx)
             fl[:] = self.Cx.getArray(readonly=True) / self.kappa
+
+    def _objective(self, snes, z):
+        """Φ at z = (v, μ) (class docstring; collective)."""
+        s = self.system
+        self._unpack(z)
+        self.tmp.waxpy(-1.0, self.vhat, self.v)
+        s.M.mult(self.tmp, self.Mv)
+        phi = 0.5 * self.tmp.dot(self.Mv) + self.sigma / self.kappa * s.potential(self.xe)
+        c_d = s.material.damping
+        if c_d:
+            s.M.mult(self.v, self.Mv)
+            phi += 0.5 * self.sigma * c_d * self.v.dot(self.Mv)
+        return phi
 
     def _limit(self, z, y):
         """Newton's update −y of z (Vecs) shortened to the largest fraction
@@ -672,6 +701,7 @@ class BackwardEuler(NewtonStepper):
 
     name = "implicit"
     order = 1
+    minimises = True
 
     def __init__(self, system, dt, control=None, guess="extrapolated", **kw):
         super().__init__(system, dt, control, **kw)
@@ -864,6 +894,7 @@ class BDF2(NewtonStepper):
 
     name = "bdf2"
     order = 2
+    minimises = True
 
     def __init__(self, system, dt, control=None, **kw):
         super().__init__(system, dt, control, **kw)

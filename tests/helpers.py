@@ -174,6 +174,24 @@ def constraints_off_rest(m, shift, mu_all, weight=0.5):
     return g, m.stiffness(x, mu, weight)
 
 
+def step_potential_slopes(integ, x, z, seed, h=1e-4):
+    """A step of the implicit ``integ`` from the state x at rest, its
+    unknowns at z (a Vec): the central difference of its objective Φ along
+    a random direction d, and F_uᵀ d (``NewtonStepper``)."""
+    integ.xn, integ.vn = x.copy(), x.copy()
+    integ.vn.scale(0.0)
+    integ.coefficients(1e-2)
+    F, d = z.duplicate(), z.duplicate()
+    integ._residual(None, z, F)
+    d.getArray()[:] = 1e-3 * np.random.default_rng(seed).standard_normal(z.getLocalSize())
+    phi = []
+    for sign in (1, -1):
+        zs = z.copy()
+        zs.axpy(sign * h, d)
+        phi.append(integ._objective(None, zs))
+    return (phi[0] - phi[1]) / (2 * h), F.dot(d)
+
+
 def barrier_differences(model, x, rng):
     """The barrier and friction of ``model`` at the yarn points x against
     central differences along a random direction d: (dP, ∇P·d, K d, the

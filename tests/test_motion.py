@@ -1,8 +1,9 @@
 """Bodies that move: the keyframed motion passes through its keyframes and
 is C¹, a posed body is the rest body moved rigidly, a body moving at a
 constant velocity carries a resting yarn by friction, the barrier with
-the carried friction is still one potential (finite differences), and an
-implicit step's guess carries the points near a moving body with it."""
+the carried friction is still one potential (finite differences) and the
+implicit step's too, and an implicit step's guess carries the points near
+a moving body with it."""
 
 import json
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from helpers import barrier_differences, jersey, run
+from helpers import barrier_differences, jersey, run, step_potential_slopes
 from knitfem.contact.colliders import Capsule, Plane, Sphere
 from knitfem.contact.motion import (Kinematic, Motion, carried, load_motions,
                                    rotation_matrix)
@@ -194,3 +195,31 @@ def test_points_are_carried_by_the_bodies_near_them():
     # measured 4.3e-19 m
     assert half[0] == pytest.approx([0.0025, 0.0, 0.0], abs=1e-17)
     assert carried((rest,), x, 0.0, 1.0, 5e-3) is None
+
+
+def test_a_free_yarns_step_potential_is_what_the_residual_derives_from():
+    """A yarn resting on a floor that slides and turns (friction lagged on
+    it, no constraint rows): backward Euler's Φ (``NewtonStepper``) has the
+    residual as its gradient (central differences along a random direction),
+    through ``FullModel.potential``."""
+    from solvers.integrators import BackwardEuler
+
+    r = 5e-4
+    s = np.linspace(-0.01, 0.01, 12)
+    X = (s[:, None] * np.array([0.0, 0.0, 1.0]) + [0.0, 0.95 * r, 0.0])[None]
+    floor = Kinematic(Plane(np.zeros(3), np.array([0.0, 1.0, 0.0])),
+                      Motion([0.0, 1.0], [[0, 0, 0], [0.01, 0, 0]],
+                             np.radians([[0, 0, 0], [0, 10, 0]])))
+    fab = Fabric(X=X, radius=r, friction=0.5, bodies=(floor,))
+    model = FullModel(SELF, fab, Material(EA=10.0, EI=1e-6, rho=1e-3, damping=2.0))
+    integ = BackwardEuler(model, 1e-2)
+    x = model.rest_state()
+    model.begin_step(x, 0.0)
+    model.move_bodies(0.0, 1e-2)
+    assert len(model.barrier.lagged[0]) > 0
+    z = integ.saddle.createVec()
+    z.getArray()[:] = 0.02 * np.random.default_rng(9).standard_normal(z.getLocalSize())
+    fd, slope = step_potential_slopes(integ, x, z, seed=10)
+    # measured 1.3e-11 (without the friction potential: 0.08)
+    assert fd == pytest.approx(slope, rel=1e-8)
+    model.destroy()

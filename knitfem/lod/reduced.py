@@ -535,6 +535,15 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 E += part.energy(A)
         return self.comm.tompi4py().allreduce(E)
 
+    def potential(self, q):
+        """Π(α) = E + D − Q_gᵀ α, as ``FullModel.potential`` with this model's
+        E (``elastic_energy``; sampled, with the contact set's barrier and
+        friction; else the lagged friction of every yarn element)."""
+        E = self.elastic_energy(q)
+        if self.contact is None:
+            E += self.full.friction_potential(self.full_state(q, self.eps))
+        return E - self.Qg.dot(q)
+
     def forces(self, alpha, alphadot, Q):
         """Q^V = Γᵀ Q(Γα, Γα̇) = −Γᵀ ∂E/∂ε(Γα) + Γᵀ Q_g − c_d M^V α̇ (collective):
         the elastic forces of the yarns through Γᵀ (or of the sampled set,

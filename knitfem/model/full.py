@@ -376,6 +376,19 @@ class FullModel:
             e += self.yarn_contact.energy(Pall) if self.comm.rank == 0 else 0.0
         return self.comm.tompi4py().allreduce(e)
 
+    def friction_potential(self, x):
+        """D at the state x: the lagged friction's potential against the
+        bodies (``colliders``; 0 without; collective)."""
+        d = 0.0 if self.barrier is None else \
+            self.barrier.friction_potential(self.yarn_points(x))
+        return self.comm.tompi4py().allreduce(d)
+
+    def potential(self, x):
+        """Π(ε) = E(ε) + D(ε) − Q_gᵀ ε, whose gradient is −Q but for damping
+        (``forces``): the elastic energy with the barriers, the lagged
+        friction, gravity and the point loads (collective)."""
+        return self.elastic_energy(x) + self.friction_potential(x) - self.Qg.dot(x)
+
     def add_elastic_forces(self, x, Q):
         """Q += −∂E/∂ε (E = E_s + E_b + E_c + E_y; local, but for the yarn
         contact's gather of all control points)."""
