@@ -165,36 +165,45 @@ def test_carried_friction_forces_and_tangent_match_finite_differences():
 
 
 def test_points_are_carried_by_the_bodies_near_them():
-    """``carried``: with one body, every point goes as a point of the body
-    would (x¹ = R₁R₀ᵀ(x − s₀) + s₁, to round-off); beside a body at rest,
-    a point much nearer the moving body goes with it, one much nearer the
-    resting body stays, and one as near to both goes half way; without a
-    moving body there is nothing to carry."""
+    """``carried``: with one body, every point well within the reach goes as
+    a point of the body would (x¹ = R₁R₀ᵀ(x − s₀) + s₁, to round-off), a
+    point 1.25 times as far half way, one 1.67 times as far not at all (a
+    knit is carried whole, by the nearest of its points); beside a body at
+    rest, a point much nearer the moving body goes with it, one much nearer
+    the resting body stays, and one as near to both goes half way; without
+    a moving body there is nothing to carry."""
     motion = Motion(**KEYS)
     arm = Kinematic(Capsule(np.zeros(3), np.array([0.0, 0.0, 0.05]), 0.01), motion)
     rng = np.random.default_rng(5)
     x = 0.03 * rng.standard_normal((40, 3))
     (R0, s0), (R1, s1) = motion.pose(0.31), motion.pose(0.37)
     rigid = (x - s0) @ (R1 @ R0.T).T + s1 - x
-    d = carried((arm,), x, 0.31, 0.37, length=5e-3)
-    # measured 0 (the points move up to 9 mm)
+    d = carried((arm,), x, 0.31, 0.37, length=5e-3, reach=1.0)
+    # measured 0 (the points move up to 9 mm, 0.1 m at most from the arm)
     assert np.allclose(d, rigid, rtol=0, atol=1e-16)
+    arm.at(0.31)
+    edge = arm.body.a + np.array([0.0, 0.06, 0.0])            # 5 cm from the arm
+    moved = (edge - s0) @ (R1 @ R0.T).T + s1 - edge
+    for reach, share in ((1.0, 1.0), (0.04, 0.5), (0.03, 0.0)):     # 1, 1.25, 1.67 R
+        d = carried((arm,), edge[None], 0.31, 0.37, length=5e-3, reach=reach)[0]
+        assert np.allclose(d, share * moved, rtol=0, atol=1e-16)
     rest = Sphere(np.array([0.0, 0.0, -0.5]), 0.01)
     near_arm = np.array([[0.0, 0.012, 0.02]])            # 2 mm from the arm
     near_rest = np.array([[0.0, 0.0, -0.488]])           # 2 mm from the sphere
-    both = [carried((arm, rest), p, 0.31, 0.37, length=5e-3)[0]
+    both = [carried((arm, rest), p, 0.31, 0.37, length=5e-3, reach=1.0)[0]
             for p in (near_arm, near_rest)]
     # 0.49 m further from the other body, 98 lengths: e^-98
-    assert np.allclose(both[0], carried((arm,), near_arm, 0.31, 0.37, 5e-3)[0],
+    assert np.allclose(both[0], carried((arm,), near_arm, 0.31, 0.37, 5e-3, 1.0)[0],
                        rtol=0, atol=1e-40)
     assert np.abs(both[1]).max() < 1e-40
     twin = Kinematic(Sphere(np.array([0.0, 0.0, -0.5]), 0.01),
                      Motion([0.0, 1.0], [[0, 0, 0], [0.01, 0, 0]]))
     mid = np.array([[0.02, 0.0, -0.5]])                   # 1 cm from both spheres
-    half = carried((Sphere(np.array([0.04, 0.0, -0.5]), 0.01), twin), mid, 0.0, 0.5, 5e-3)
+    half = carried((Sphere(np.array([0.04, 0.0, -0.5]), 0.01), twin), mid, 0.0, 0.5,
+                   5e-3, 1.0)
     # measured 4.3e-19 m
     assert half[0] == pytest.approx([0.0025, 0.0, 0.0], abs=1e-17)
-    assert carried((rest,), x, 0.0, 1.0, 5e-3) is None
+    assert carried((rest,), x, 0.0, 1.0, 5e-3, 1.0) is None
 
 
 def test_a_free_yarns_step_potential_is_what_the_residual_derives_from():

@@ -315,10 +315,14 @@ def test_sparse_tangent_of_a_sleeve_on_a_moving_arm_is_the_force_derivative():
     assert np.allclose(K @ d, fd, rtol=0, atol=1e-8 * np.abs(fd).max())
 
 
-def test_the_guess_carries_a_sleeve_rigidly_with_the_only_moving_body():
-    """A tube whose only body turns: the implicit step's guess (``carry``)
-    moves the volume's control points rigidly, so every embedded yarn point
-    goes rigidly with the body (Γ reproduces affine maps of α)."""
+def test_the_guess_carries_a_sleeve_rigidly_with_the_only_moving_body(monkeypatch):
+    """A tube whose only body turns, every point of it within the carry's
+    reach: the implicit step's guess (``carry``) moves the volume's control
+    points rigidly, so every embedded yarn point goes rigidly with the body
+    (Γ reproduces affine maps of α)."""
+    import knitfem.model.full
+
+    monkeypatch.setattr(knitfem.model.full, "CARRY_REACH", 1e6)
     from knitfem.cli.scenes import make_fabric
     from knitfem.knit.pattern import Jersey
     from knitfem.lod.reduced import Embedding, ReducedModel

@@ -149,19 +149,24 @@ def moving(body):
     return isinstance(body, Kinematic)
 
 
-def carried(bodies, x, t0, t1, length):
+def carried(bodies, x, t0, t1, length, reach, least=float):
     """How far the points x (n, 3) go from t0 to t1 with the bodies near
     them: each point is carried by every body b as a point of it would be,
     x¹_b = R₁ R₀ᵀ (x − s₀) + s₁ ((R, s) b's pose at t0 and t1; a body at rest
     does not carry), weighted by a soft minimum of the distances φ_b(x) at
-    t0,
+    t0, all of them in full when one comes within ``reach`` of a body and
+    not at all when none comes within 1.5 times it,
 
-        d(x) = Σ_b w_b (x¹_b − x),   w_b ∝ exp(−φ_b(x) / ``length``),
+        d(x) = g Σ_b w_b (x¹_b − x),   w_b = exp(−φ_b / ℓ) / Σ_c exp(−φ_c / ℓ),
+        g = 1 − S((min_x,b φ_b − R) / (R/2)),   S(s) = 3s² − 2s³ on [0, 1],
 
-    so a garment round a moving limb goes with it and blends smoothly into
-    the bodies at rest beside it (a guess for an implicit step: Newton from
-    there finds the yarns still in contact and sticking where they were).
-    Returns d (n, 3), or None when no body moves."""
+    ℓ = ``length``, R = ``reach``, the minimum over the points taken by
+    ``least`` (over the ranks: a garment is one), so a garment round a
+    moving limb goes rigidly with it, blends smoothly into the bodies at
+    rest beside it, and a knit away from every body stays (a guess for an
+    implicit step: Newton from there finds the yarns still in contact and
+    sticking where they were; a knit carried in part would start its step
+    stretched). Returns d (n, 3), or None when no body moves."""
     if not any(moving(body) for body in bodies):
         return None
     x = np.asarray(x, dtype=float)
@@ -174,8 +179,11 @@ def carried(bodies, x, t0, t1, length):
         (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
         phi[b] = body.rest.moved(R0, s0).phi(x)
         moves.append((b, (x - s0) @ (R1 @ R0.T).T + s1 - x))
-    w = np.exp(-(phi - phi.min(axis=0)) / length)
-    w /= w.sum(axis=0)
+    near = phi.min(axis=0)
+    w = np.exp(-(phi - near) / length)
+    nearest = least(float(near.min(initial=np.inf)))
+    s = min(max((nearest - reach) / (0.5 * reach), 0.0), 1.0)
+    w *= (1.0 - s * s * (3.0 - 2.0 * s)) / w.sum(axis=0)
     return sum(w[b, :, None] * move for b, move in moves)
 
 

@@ -44,10 +44,11 @@ from knitfem.yarn.elements import YarnElements
 
 __all__ = ["Material", "FullModel", "applied_forces"]
 
-CARRY_LENGTH = 10.0
-"""The soft minimum's length of ``motion.carried`` [yarn radii]: a point
-twice as far from a moving body as from one at rest, 20 r further, goes
-with the moving one by about 12 %."""
+CARRY_LENGTH, CARRY_REACH = 10.0, 10.0
+"""The soft minimum's length and reach of ``motion.carried`` [yarn radii]: a
+point 20 r further from a moving body than from one at rest goes with the
+moving one by about 12 %; a knit with a point within 10 r of a body goes
+with the bodies, one 15 r from every body stays."""
 
 EV_FORCES = PETSc.Log.Event("knitForces")
 EV_TANGENT = PETSc.Log.Event("knitTangent")
@@ -354,8 +355,9 @@ class FullModel:
         t0 to t1 (``motion.carried``), or None (no body moves)."""
         if self.barrier is None:
             return None
-        return carried(self.barrier.bodies, points, t0, t1,
-                       CARRY_LENGTH * self.fabric.radius)
+        r, comm = self.fabric.radius, self.comm.tompi4py()
+        return carried(self.barrier.bodies, points, t0, t1, CARRY_LENGTH * r,
+                       CARRY_REACH * r, lambda m: comm.allreduce(m, op=MPI.MIN))
 
     def carry(self, x, t0, t1, v, scale):
         """v += ``scale`` × the state x's move with the moving bodies from t0
