@@ -36,6 +36,7 @@ sum to 1, so Γ̃ reproduces affine maps exactly.
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from knitfem.yarn import bspline
 
@@ -256,19 +257,17 @@ class BoundingVolume:
 
     # -- inversion --------------------------------------------------------
 
-    def _initial_guess(self, x, per_patch=3, chunk=1 << 22):
-        """Nearest point of a coarse parameter grid, for each x (N, 3)."""
+    def _initial_guess(self, x, per_patch=3):
+        """Nearest point of a coarse parameter grid, for each x (N, 3) (a k-d
+        tree of the grid's points)."""
         n = bspline.segments(self.n1, self.periodic)
         g1 = np.linspace(0, n, per_patch * n + 1)[:-1 if self.periodic else None]
         g2 = np.linspace(0, self.n2 - 3, per_patch * (self.n2 - 3) + 1)
         g3 = np.linspace(0, 1, 3)
         G = np.stack(np.meshgrid(g1, g2, g3, indexing="ij"), -1).reshape(-1, 3)
-        Y = self.points(*G.T)
-        y2 = np.einsum("gi,gi->g", Y, Y)
-        step = max(1, chunk // len(G))
-        best = [np.argmin(y2 - 2 * x[i:i + step] @ Y.T, axis=1)
-                for i in range(0, len(x), step)]
-        return G[np.concatenate(best)] if best else np.zeros((0, 3))
+        if not len(x):
+            return np.zeros((0, 3))
+        return G[cKDTree(self.points(*G.T)).query(x)[1]]
 
     def embed(self, points, tol=1e-12, maxit=50, slack=1e-9):
         """Parameters (s₁, s₂, w₃) with P(s₁, s₂, w₃) = x, by Newton.
