@@ -100,6 +100,7 @@ class ShellStretch:
         self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
         self.where = (patch[order], slot, order)
         self.placed = None            # (T, positions) of add_tangent's first call for T
+        self.dense = None             # add_hessian's dense array as values
 
     def _strain(self, A):
         """t_q (npts, 3) and ē_w (nwin,)."""
@@ -235,8 +236,13 @@ class ShellStretch:
         return reach.T @ reach
 
     def add_hessian(self, A, out):
-        """out (3n, 3n) += ∂²E_s/∂α² (``hessian``)."""
-        out += self.hessian(A).toarray()
+        """out (3n × 3n, dense, C-ordered) += ∂²E_s/∂α² (``add_tangent`` on its
+        entries, laid out at the first call for ``out``)."""
+        from knitfem.lod.sparse_tangent import DenseValues
+
+        if self.dense is None or self.dense.R is not out:
+            self.dense = DenseValues(out)
+        self.add_tangent(A, self.dense)
 
 
 def patch_of(cols, win, nwin):

@@ -23,7 +23,7 @@ from scipy import sparse
 
 from knitfem.model.assembly import create_aij
 
-__all__ = ["PatchProduct", "SparseTangent", "scalar_pattern"]
+__all__ = ["DenseValues", "PatchProduct", "SparseTangent", "scalar_pattern"]
 
 
 def scalar_pattern(A):
@@ -129,6 +129,28 @@ class SparseTangent:
 
     def destroy(self):
         self.mat.destroy()
+
+
+class DenseValues:
+    """A dense N × N array ``R`` seen as a ``SparseTangent``'s values (every
+    entry in the pattern, at position r N + c), so that the parts laid out
+    for the sparse tangent add into the dense one the same way."""
+
+    def __init__(self, R):
+        self.R, self.N = R, len(R)
+
+    @property
+    def nnz(self):
+        return self.N * self.N
+
+    def positions(self, rows, cols):
+        return np.asarray(rows, dtype=np.int64) * self.N + cols
+
+    def add_at(self, pos, x):
+        """R's entries at ``pos`` += x (summed where they meet; ``nnz``
+        dropped)."""
+        flat = self.R.reshape(-1)
+        flat += np.bincount(pos.ravel(), x.ravel(), minlength=self.nnz + 1)[:-1]
 
 
 class PatchProduct:
