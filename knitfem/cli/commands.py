@@ -398,8 +398,8 @@ SETTLING = ("implicit", 1e-2)
 loops ring against the body, which BDF2's error control follows in steps of
 1e-5 s (the drape stalls, the sleeve takes 3 473 steps for 0.5 s); backward
 Euler damps the ringing and settles in 1e-2 s steps, each Newton solve
-started from the step's start (``BackwardEuler`` guess "start"; 825 Newton
-iterations for the 12×12 drape, 1 542 from the extrapolated guess). (The
+started from the step's start (``BackwardEuler`` guess "start"; 884 Newton
+iterations for the 12×12 drape, 1 214 from the extrapolated guess). (The
 full model keeps BDF2: its stiff yarns take hundreds of Newton iterations a
 step at 1e-2 s.)"""
 
