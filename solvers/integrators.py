@@ -692,8 +692,8 @@ class BackwardEuler(NewtonStepper):
     Predictor ε̇_n + h a_n with a_n = (ε̇_n − ε̇_{n−1}) / h_{n−1}, or, with
     ``guess="start"``, ε̇ = 0: Newton from the step's start ε_n, which a
     knit on a body can always reach (an extrapolation drives a falling knit
-    into the body's barrier: the 12×12 reduced drape takes 1 542 Newton
-    iterations from it, 825 from the start), carried with the moving bodies
+    into the body's barrier: the 12×12 reduced drape takes 1 214 Newton
+    iterations from it, 884 from the start), carried with the moving bodies
     near it (the system's ``carry``, when it has one): a sleeve goes with
     the arm that turns inside it, sticking where it was. Local error e = ½ h² ε̈
     (``PositionHistory`` with c = ½; on the first step ½ h (ε̇_{n+1} − ε̇_n)).
