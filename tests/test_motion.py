@@ -232,3 +232,25 @@ def test_a_free_yarns_step_potential_is_what_the_residual_derives_from():
     # measured 1.3e-11 (without the friction potential: 0.08)
     assert fd == pytest.approx(slope, rel=1e-8)
     model.destroy()
+
+
+def test_the_carried_guess_turns_with_the_whole_problem():
+    """Bodies, their keyframes (translations, rotation vectors, pivot) and
+    the points all turned by Q: every point is carried by Q times as far."""
+    Q = rotation_matrix(np.radians([20.0, -35.0, 50.0]))
+    keys = dict(KEYS, translations=np.asarray(KEYS["translations"]),
+                rotations=np.asarray(KEYS["rotations"]))
+    turned = dict(keys, translations=keys["translations"] @ Q.T,
+                  rotations=keys["rotations"] @ Q.T, pivot=Q @ keys["pivot"])
+    a, b, c = np.zeros(3), np.array([0.0, 0.0, 0.05]), np.array([0.0, -0.03, 0.0])
+
+    def bodies(R, k):
+        return (Kinematic(Capsule(R @ a, R @ b, 0.01), Motion(**k)),
+                Sphere(R @ c, 0.012))
+
+    x = 0.02 * np.random.default_rng(6).standard_normal((30, 3))
+    d = carried(bodies(np.eye(3), keys), x, 0.2, 0.35, 5e-3, 0.05)
+    dq = carried(bodies(Q, turned), x @ Q.T, 0.2, 0.35, 5e-3, 0.05)
+    assert np.abs(d).max() > 1e-3
+    # measured 1.0e-17 m (the points move up to 9 mm)
+    assert np.allclose(dq, d @ Q.T, rtol=0, atol=1e-16)

@@ -487,11 +487,9 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
 
     def carry(self, q, t0, t1, v, scale):
         """v += ``scale`` × the move of the volume's control points α = q with
-        the moving bodies near them from t0 to t1 (``FullModel.carried``): the
-        embedded yarns, Γα, go along (local, v a Vec like q)."""
-        d = self.full.carried(q.getArray(readonly=True).reshape(-1, 3), t0, t1)
-        if d is not None:
-            v.getArray()[:] += scale * d.ravel()
+        the moving bodies near them from t0 to t1 (``FullModel.add_carried``):
+        the embedded yarns, Γα, go along (v a Vec like q)."""
+        self.full.add_carried(q.getArray(readonly=True).reshape(-1, 3), t0, t1, v, scale)
 
     def step_limit(self, q, dq):
         if self.contact is None:

@@ -350,21 +350,22 @@ class FullModel:
         if self.barrier is not None:
             self.barrier.step_to(t0, t1)
 
-    def carried(self, points, t0, t1):
-        """How far ``points`` (n, 3) go with the moving bodies near them from
-        t0 to t1 (``motion.carried``), or None (no body moves)."""
+    def add_carried(self, points, t0, t1, v, scale):
+        """v += ``scale`` × how far ``points`` (n, 3, this rank's, v's local
+        layout) go with the moving bodies near them from t0 to t1
+        (``motion.carried``; collective)."""
         if self.barrier is None:
-            return None
+            return
         r, comm = self.fabric.radius, self.comm.tompi4py()
-        return carried(self.barrier.bodies, points, t0, t1, CARRY_LENGTH * r,
-                       CARRY_REACH * r, lambda m: comm.allreduce(m, op=MPI.MIN))
+        d = carried(self.barrier.bodies, points, t0, t1, CARRY_LENGTH * r,
+                    CARRY_REACH * r, lambda m: comm.allreduce(m, op=MPI.MIN))
+        if d is not None:
+            v.getArray()[:] += scale * d.ravel()
 
     def carry(self, x, t0, t1, v, scale):
         """v += ``scale`` × the state x's move with the moving bodies from t0
-        to t1 (``carried``; local, v a Vec like x)."""
-        d = self.carried(self.yarn_points(x), t0, t1)
-        if d is not None:
-            v.getArray()[:] += scale * d.ravel()
+        to t1 (``add_carried``; v a Vec like x)."""
+        self.add_carried(self.yarn_points(x), t0, t1, v, scale)
 
     def elastic_energy(self, x):
         """E(ε) = E_s + E_b (+ E_c, the colliders' barrier, + E_y, the yarn
