@@ -469,20 +469,31 @@ def draw(path, P, radius, title="", view="front", extent=None, bodies=()):
     _save(fig, path)
 
 
-def draw_panels(path, frames, radius, titles, view="oblique", extent=None, bodies=()):
+def draw_panels(path, frames, radius, titles, view="oblique", extent=None, bodies=None):
     """One PNG with the fabrics ``frames`` side by side, in one common view
-    and scale (e.g. the snapshots of a run, as the paper's Figures 10–13)."""
+    and scale (e.g. the snapshots of a run, as the paper's Figures 10–13);
+    ``bodies`` the bodies of each frame, posed as they were then."""
+    bodies = _per_frame(bodies, frames)
     if extent is None:
-        extent = _world_box(frames, bodies)
+        extent = _world_box(frames, [b for posed in bodies for b in posed])
     w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
     fig, axes = _pyplot().subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
-    for ax, P, title in zip(axes[0], frames, titles):
-        _draw_on(ax, P, radius, view, extent, bodies)
+    for ax, P, title, posed in zip(axes[0], frames, titles, bodies):
+        _draw_on(ax, P, radius, view, extent, posed)
         ax.set_title(title)
     fig.tight_layout()
     _fit_widths(fig)
     _save(fig, path)
+
+
+def _per_frame(bodies, frames):
+    """The bodies of each frame (none when ``bodies`` is None)."""
+    if bodies is None:
+        return [()] * len(frames)
+    if len(bodies) != len(frames):
+        raise ValueError(f"{len(bodies)} frames of bodies for {len(frames)} of yarns")
+    return bodies
 
 
 def _world_box(frames, bodies=()):
@@ -493,18 +504,20 @@ def _world_box(frames, bodies=()):
 
 
 def animate(path, times, frames, radius, title="", view="three_quarter", fps=10,
-            bodies=()):
+            bodies=None):
     """A GIF (matplotlib.animation, Pillow) of the fabrics ``frames`` at
-    ``times``, in one view and scale, 800 pixels wide (loops visible)."""
+    ``times``, in one view and scale, 800 pixels wide (loops visible);
+    ``bodies`` the bodies of each frame, posed as they were then."""
     from matplotlib.animation import FuncAnimation, PillowWriter
 
-    extent = _world_box(frames, bodies)
+    bodies = _per_frame(bodies, frames)
+    extent = _world_box(frames, [b for posed in bodies for b in posed])
     fig, ax = _pyplot().subplots(figsize=_figsize(_projected_box(extent, view, radius),
                                             10.0, most=12.0), dpi=80)
 
     def show(k):
         ax.clear()
-        _draw_on(ax, frames[k], radius, view, extent, bodies)
+        _draw_on(ax, frames[k], radius, view, extent, bodies[k])
         ax.set_title(f"{title}, t = {times[k]:.2f} s")
         _fit_widths(fig)
         return []

@@ -110,3 +110,32 @@ def test_a_run_and_its_restart_have_every_picture_after_close(tmp_path):
                  "hanging_snapshots.png"):         # the restart is exact
         assert ((tmp_path / "again" / name).read_bytes()
                 == (tmp_path / "whole" / name).read_bytes())
+
+
+def test_the_pictures_show_the_moving_bodies_where_they_were_at_each_frame(
+        tmp_path, monkeypatch):
+    """The snapshots, their panel and the animation of a sleeve whose elbow
+    bends get each frame's bodies: the forearm along +z at t = 0 and turned
+    at the end as summary.json gives it, not the end pose in every frame."""
+    import numpy as np
+
+    from knitfem import api
+    from knitfem.run.simulation import Simulation
+
+    jobs = {}
+    monkeypatch.setattr(Simulation, "paint",
+                        lambda self, name, *a, **k: jobs.setdefault(name, []).append(k))
+    fabric = api.scene("sleeve", rows=4, cols=8, elbow_angle=30, elbow_time=0.02,
+                       friction=0)
+    sim = api.simulation(api.reduced_model(fabric), out=str(tmp_path), scene="sleeve",
+                         snapshots=(0.0, 0.02), animation="sleeve.gif", output_every=1)
+    fore = sim.run(0.02)["bodies"][1]
+    shots = [k["bodies"] for k in jobs["draw"]]
+    panel, movie = jobs["draw_panels"][0]["bodies"], jobs["animate"][0]["bodies"]
+    assert len(panel) == len(shots) == 2 and len(movie) == 3
+    for frames in (shots, panel, movie):
+        start, end = frames[0][1].b, frames[-1][1].b      # the forearm's tip
+        assert start[1] == 0 < start[2]                   # along +z, at rest
+        assert np.array_equal(end, fore["p1"])            # turned, as summarised
+    tips = np.array([b[1].b for b in movie])
+    assert 0 == tips[0, 1] < tips[1, 1] < tips[2, 1]      # turning frame by frame

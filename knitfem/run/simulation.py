@@ -228,9 +228,11 @@ class Simulation:
         return self.system.gather_points(self.x)
 
     # -- output --------------------------------------------------------------
-    def posed(self):
-        """The bodies where they are now (a moving one as its posed body)."""
-        return tuple(b.body if moving(b) else b for b in self.bodies)
+    def posed(self, t=None):
+        """The bodies where they are now, or at time ``t`` (a moving one as
+        its posed body)."""
+        return tuple((b.body if t is None else b.rest.moved(*b.motion.pose(t)))
+                     if moving(b) else b for b in self.bodies)
 
     @property
     def moving(self):
@@ -265,10 +267,12 @@ class Simulation:
         self.painter.submit(name, *args, **kwargs)
 
     def draw_snapshot(self, title, P):
-        """Keep a snapshot for the panel and have its PNG drawn (rank 0)."""
-        self.frames.append((title, P))             # title: "t = 0.4 s"
+        """Keep a snapshot for the panel and have its PNG drawn (rank 0), the
+        bodies as they were at its time (title: "t = 0.4 s")."""
+        bodies = self.posed(float(title.split()[2]))
+        self.frames.append((title, P, bodies))
         self.paint("draw", self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
-                   self.full.fabric.radius, view=self.view, bodies=self.posed(),
+                   self.full.fabric.radius, view=self.view, bodies=bodies,
                    title=f"{self.scene}, {self.system.kind} model, {title}")
 
     def _write_frame(self, P):
@@ -293,7 +297,7 @@ class Simulation:
         if self.body_series is not None:
             self.body_series.write(self.step_count, self.t, self.posed())
         if self.animation:
-            self.movie.append((self.t, P))
+            self.movie.append((self.t, P, self.posed()))
 
     def write_panels(self):
         """The pictures still to draw, once the stepping is over: the
@@ -308,14 +312,14 @@ class Simulation:
 
     def _write_panels(self):
         if self.frames:
-            titles, frames = zip(*self.frames)
+            titles, frames, bodies = zip(*self.frames)
             self.paint("draw_panels", self._path(f"{self.scene}_snapshots.png"),
                        frames, self.full.fabric.radius, titles, view=self.view,
-                       bodies=self.posed())
+                       bodies=bodies)
         if len(self.movie) > 1:
-            times, frames = zip(*self.movie)
+            times, frames, bodies = zip(*self.movie)
             self.paint("animate", self._path(self.animation), times, frames,
-                       self.full.fabric.radius, view=self.view, bodies=self.posed(),
+                       self.full.fabric.radius, view=self.view, bodies=bodies,
                        title=f"{self.scene}, {self.system.kind} model")
         if self.painter is not None:
             painter, self.painter = self.painter, None
@@ -346,7 +350,8 @@ class Simulation:
                      yarn_contact=self.full.contact_state())
         ckpt = output.Checkpoint(np.concatenate(xs), np.concatenate(vs), self.t,
                                  self.step_count, self.problem, self.stats,
-                                 extra, self.frames) if self.comm.rank == 0 else None
+                                 extra, [f[:2] for f in self.frames]) \
+            if self.comm.rank == 0 else None
         path = self.output.write_checkpoint(ckpt)
         self.last_checkpoint = (path, self.step_count)
         return path
@@ -676,6 +681,7 @@ class Simulation:
                    mumps_workspace_raised=dict(WORKSPACE_RAISED),
                    t_end=self.t, wall_time_s=self.wall_time,
                    unknowns=s.M.getSize()[0] + s.C.getSize()[0], ranks=self.comm.size,
+                   yarn_control_points=len(self.full.fabric.X),
                    newton_iterations=self.stats["newton"],
                    ksp_iterations=self.stats["ksp"], **self.report, **m,
                    **self.full.slide_report(self.eps))
