@@ -190,3 +190,21 @@ def test_quadrature_baseline_weights_stand_for_every_element():
     assert rep["training_error"] > 1e-2 and rep["held_out_error"] > 0
     red.destroy()
     full.destroy()
+
+
+def test_a_sets_force_error_is_the_dense_fits_without_its_columns(pair):
+    """``relative_error`` sums the weighted elements' forces state by state;
+    it equals ‖A ξ − b‖ / ‖b‖ of the dense system ``fit_system`` (whose
+    columns, one an element and 3 n rows a state, the 120×240 sleeve's
+    report once held in 10 GB), on the whole knit and on a subset."""
+    full, red = pair
+    emb = red.embedding
+    states = sampling.training_states(emb.volume, full.fabric.radius, 3)
+    rng = np.random.default_rng(5)
+    elements = np.sort(rng.choice(full.elements.ne, 12, replace=False))
+    weights = rng.uniform(0.5, 3.0, len(elements))
+    for subset in (None, np.arange(0, full.elements.ne, 2)):
+        A, b = sampling.fit_system(full, emb, elements, states, subset)
+        dense = np.linalg.norm(A @ weights - b) / np.linalg.norm(b)
+        assert sampling.relative_error(full, emb, elements, weights, states, subset) \
+            == pytest.approx(dense, rel=1e-13, abs=0)            # measured 0

@@ -183,31 +183,40 @@ def training_states(volume, radius, seed, held_out=False):
     return np.array(states)
 
 
+def _gradients(full, embedding, alpha):
+    """∇E_e(Γ_e α) of every element of the rank, (ne, 12)."""
+    X = np.einsum("pk,pki->pi", embedding.vals, alpha[embedding.cols])
+    return full.kernels.element_gradient(X)
+
+
+def _projected(full, embedding, grad, elements, weights=None):
+    """Σ_e w_e Γ_eᵀ ∇E_e over ``elements`` (w_e = 1 without ``weights``),
+    (3 nvolume,), from the element gradients ``grad``."""
+    kept = np.zeros_like(grad)
+    kept[elements] = grad[elements] if weights is None else \
+        weights[:, None] * grad[elements]
+    g = full.elements.assemble_vector(kept)
+    n = embedding.volume.size
+    return np.stack([np.bincount(embedding.cols.ravel(), weights=(
+        embedding.vals * g[:, i:i + 1]).ravel(), minlength=n) for i in range(3)],
+        -1).ravel()
+
+
 def element_forces(full, embedding, elements, alpha, subset=None):
     """c_e = Γ_eᵀ ∇E_e(Γ_e α) of ``elements`` as a dense (3 nvolume, ne) array,
     and the exact b = Σ_e c_e over all the rank's elements (over ``subset``,
     element indices, when given)."""
     el = full.elements
-    X = np.einsum("pk,pki->pi", embedding.vals, alpha[embedding.cols])
-    grad = full.kernels.element_gradient(X)                  # (ne_all, 12)
+    grad = _gradients(full, embedding, alpha)                # (ne_all, 12)
     n = embedding.volume.size
-    b = np.zeros((n, 3))
-    if subset is None:
-        full_grad = el.assemble_vector(grad)
-    else:
-        kept = np.zeros_like(grad)
-        kept[subset] = grad[subset]
-        full_grad = el.assemble_vector(kept)
-    for i in range(3):
-        b[:, i] = np.bincount(embedding.cols.ravel(), weights=(
-            embedding.vals * full_grad[:, i:i + 1]).ravel(), minlength=n)
+    b = _projected(full, embedding, grad, slice(None) if subset is None else subset)
     g = grad[elements].reshape(-1, 4, 3)                     # (ns, 4, 3)
     pts = el.conn[elements]                                  # (ns, 4)
     cols, vals = embedding.cols[pts], embedding.vals[pts]    # (ns, 4, k)
     slot = (np.arange(len(elements))[:, None, None] * n + cols).ravel()
     c = np.stack([np.bincount(slot, weights=(vals * g[:, :, None, i]).ravel(),
                               minlength=len(elements) * n) for i in range(3)], -1)
-    return c.reshape(len(elements), -1).T, b.ravel()
+    return c.reshape(len(elements), -1).T, b
 
 
 def candidates(full, embedding, rng, subset=None):
@@ -265,9 +274,17 @@ def fit_system(full, embedding, elements, states, subset=None):
 
 
 def relative_error(full, embedding, elements, weights, states, subset=None):
-    """‖Σ_e ξ_e c_·e − b‖ / ‖b‖ over ``states`` (b over ``subset``)."""
-    A, b = fit_system(full, embedding, elements, states, subset)
-    return float(np.linalg.norm(A @ weights - b) / np.linalg.norm(b))
+    """‖Σ_e ξ_e c_·e − b‖ / ‖b‖ over ``states`` (b over ``subset``), each
+    state scaled as in ``fit_system``, without forming its columns."""
+    miss = norm = 0.0
+    for alpha in states:
+        grad = _gradients(full, embedding, alpha)
+        b = _projected(full, embedding, grad, slice(None) if subset is None else subset)
+        scale = 1.0 / max(np.linalg.norm(b), 1e-300)
+        miss += np.sum((scale * (_projected(full, embedding, grad, elements, weights)
+                                 - b)) ** 2)
+        norm += np.sum((scale * b) ** 2)
+    return float(np.sqrt(miss / norm))
 
 
 def quadrature_set(full, embedding, stitches=2, seed=0):
