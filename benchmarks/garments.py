@@ -14,8 +14,10 @@ body and lowest point below it; per case: the reduced model's speed-up and
 its shape difference from the full one at t_end (RMS and largest distance
 between the two last frames' centreline points, the same samples in both,
 and the centroid distance). Writes <results>/garments.json, each run's
-snapshots as <results>/figures/garments_<case>_<model>.png, and prints a
-markdown table; cases not run keep their results in the JSON. The drape's full run takes about 20 minutes.
+snapshots as <results>/figures/garments_<case>_<model>.png (and its
+animation, if it makes one, as .gif), and prints a markdown table; cases
+not run keep their results in the JSON. The drape's and the elbow's full
+runs take about 20 minutes each.
 """
 
 import json
@@ -46,6 +48,9 @@ COMMANDS = {
               "-knit_model reduced -knit_t_end 0.5 -knit_snapshots 0,0.5 -o out/sleeve",
     "drape": "knitfem run -knit_scene drape -knit_rows 12 -knit_cols 12 "
              "-knit_model reduced -knit_t_end 1 -knit_snapshots 0.3,1 -o out/drape",
+    "elbow": "knitfem run -knit_scene sleeve -knit_rows 10 -knit_cols 16 "
+             "-knit_model reduced -knit_t_end 0.5 -knit_snapshots 0,0.25,0.5 "
+             "-knit_animation sleeve.gif -o out/elbow",
 }
 
 
@@ -76,10 +81,10 @@ def one_run(case, model, base):
     if p.returncode != 0:
         return dict(model=model, failed=(p.stdout + p.stderr).strip().splitlines()[-1])
     for name in os.listdir(out):
-        if name.endswith("_snapshots.png"):
+        if name.endswith("_snapshots.png") or name.endswith(".gif"):
             os.makedirs(os.path.join(RESULTS, "figures"), exist_ok=True)
             shutil.copy(os.path.join(out, name), os.path.join(
-                RESULTS, "figures", f"{STUDY}_{case}_{model}.png"))
+                RESULTS, "figures", f"{STUDY}_{case}_{model}{name[-4:]}"))
     s = json.load(open(os.path.join(out, "summary.json")))
     keys = ("steps", "newton_iterations", "drop", "sag", "centroid",
             "min_collider_distance", "lowest_point_below_collider_centre")

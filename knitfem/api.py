@@ -105,7 +105,7 @@ def scene(name="hanging", friction=None, **options):
     ----------
     name : str
         One of ``knitfem.cli.scenes.SCENES``: hanging, pulled, freefall,
-        drape, catenary or cantilever.
+        drape, catenary, cantilever or sleeve.
     friction : float
         Coulomb μ against the bodies (the scene's default: drape 0.5,
         others 0).
@@ -114,7 +114,8 @@ def scene(name="hanging", friction=None, **options):
         (a relaxed.h5 of ``knitfem relax``); the scene's own options (the
         hanging scene's ``tilt`` (90°: it starts horizontal) and ``hold``, the
         pulled scene's ``pull_stitch`` and ``pull_force``, the single yarn's
-        ``length``, ``segments`` and ``span``); ``start_rotation``;
+        ``length``, ``segments`` and ``span``, the sleeve's ``elbow_angle``
+        [deg] and ``elbow_time`` [s], 1 s when not given); ``start_rotation``;
         ``collider`` (bodies, e.g. "sphere:0,0,0,0.01").
     """
     if name not in SCENES:

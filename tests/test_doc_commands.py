@@ -63,14 +63,15 @@ def test_command_runs_as_written(tmp_path, doc, command):
 
 
 def test_garment_runs_shown_are_the_benchmarks_commands():
-    """The tube, sleeve and drape runs take minutes: each is one of
+    """The tube, sleeve, elbow and drape runs take minutes: each is one of
     ``benchmarks/garments.py``'s COMMANDS, which that study runs as written."""
     tree = ast.parse(open(os.path.join(ROOT, "benchmarks", "garments.py")).read())
     commands = next(ast.literal_eval(node.value) for node in tree.body
                     if isinstance(node, ast.Assign)
                     and node.targets[0].id == "COMMANDS")
     garments = [cmd for _, cmd in SHOWN if cmd.startswith("knitfem run")
-                and ("-knit_shape tube" in cmd or "-knit_scene drape" in cmd)]
+                and ("-knit_shape tube" in cmd or "-knit_scene drape" in cmd
+                     or "-knit_scene sleeve" in cmd)]
     assert len(garments) >= 3
     assert set(garments) <= set(commands.values())
 

@@ -106,17 +106,23 @@ def columns(path, rec):
         wall = wall.get("total")
     summary = rec.get("summary", rec)
     memory = rec.get("memory", {}).get("peak_rss_mib_max")
+    stages = rec.get("stages_s") or {}
+    setup = sum(stages.get(k, 0.0) for k in ("Model set-up", "Solver set-up"))
     return [" / ".join(path), rec.get("config", rec.get("model", summary.get("model",
                                                                         ""))),
-            flags, rec.get("unknowns", ""), rec["steps"],
+            flags, rec.get("yarn_control_points", ""),
+            rec.get("volume_control_points", ""), rec.get("unknowns", ""),
+            number(setup if stages else None, digits=3), rec["steps"],
             rec.get("newton", rec.get("newton_iterations", "")),
             rec.get("rejected", rec.get("rejected_steps", "")),
+            number(rec.get("newton_s"), digits=3),
             number(rec.get("error")), number(wall), number(memory, digits=3),
             number(summary.get("drop"), 1e3)]
 
 
-HEADER = ["case", "model or configuration", "options", "unknowns", "steps",
-          "Newton its", "rejected", "error", "wall [s]", "peak RSS [MiB]",
+HEADER = ["case", "model or configuration", "options", "yarn control points",
+          "volume control points", "unknowns", "set-up [s]", "steps", "Newton its",
+          "rejected", "s a Newton it", "error", "wall [s]", "peak RSS [MiB]",
           "drop [mm]"]
 
 
