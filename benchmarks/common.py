@@ -46,6 +46,7 @@ from knitfem.cli.commands import (build_system, jersey_from_options,  # noqa: E4
                                   material_from_options,
                                   start_rotation_from_options)
 from knitfem.cli.options import KnitError, KnitOptions  # noqa: E402
+from knitfem.io import atomic_write  # noqa: E402
 from knitfem.cli.scenes import SCENES, make_fabric  # noqa: E402
 from knitfem.run.simulation import Simulation  # noqa: E402
 from solvers.integrators import INTEGRATORS, SimulationError  # noqa: E402
@@ -284,12 +285,15 @@ def sizes_option(opts, default, text="jersey sizes ROWSxCOLS,..."):
 
 
 def write_json(comm, name, rec):
-    """RESULTS/<name>.json, written by rank 0 (collective)."""
+    """RESULTS/<name>.json, written whole by rank 0 (collective)."""
     if comm.rank == 0:
         os.makedirs(RESULTS, exist_ok=True)
         path = os.path.join(RESULTS, name + ".json")
-        with open(path, "w") as f:
-            json.dump(rec, f, indent=1)
+        def dump(tmp):
+            with open(tmp, "w") as f:
+                json.dump(rec, f, indent=1)
+
+        atomic_write(path, dump)        # a run stopped here leaves the old file
         PETSc.Sys.Print(f"wrote {os.path.relpath(path)}", comm=PETSc.COMM_SELF)
     comm.barrier()
 

@@ -473,9 +473,9 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None, bodie
     """One PNG with the fabrics ``frames`` side by side, in one common view
     and scale (e.g. the snapshots of a run, as the paper's Figures 10–13);
     ``bodies`` the bodies of each frame, posed as they were then."""
-    bodies = _per_frame(bodies, frames)
+    bodies, every = _per_frame(bodies, frames)
     if extent is None:
-        extent = _world_box(frames, [b for posed in bodies for b in posed])
+        extent = _world_box(frames, every)
     w, h = _figsize(_projected_box(extent, view, radius), 3.2, most=6.0)
     fig, axes = _pyplot().subplots(1, len(frames), figsize=(w * len(frames), h + 0.4),
                              dpi=110, squeeze=False)
@@ -488,12 +488,13 @@ def draw_panels(path, frames, radius, titles, view="oblique", extent=None, bodie
 
 
 def _per_frame(bodies, frames):
-    """The bodies of each frame (none when ``bodies`` is None)."""
+    """(the bodies of each frame, all of them in one list); none when
+    ``bodies`` is None."""
     if bodies is None:
-        return [()] * len(frames)
+        return [()] * len(frames), []
     if len(bodies) != len(frames):
         raise ValueError(f"{len(bodies)} frames of bodies for {len(frames)} of yarns")
-    return bodies
+    return bodies, [b for posed in bodies for b in posed]
 
 
 def _world_box(frames, bodies=()):
@@ -510,8 +511,8 @@ def animate(path, times, frames, radius, title="", view="three_quarter", fps=10,
     ``bodies`` the bodies of each frame, posed as they were then."""
     from matplotlib.animation import FuncAnimation, PillowWriter
 
-    bodies = _per_frame(bodies, frames)
-    extent = _world_box(frames, [b for posed in bodies for b in posed])
+    bodies, every = _per_frame(bodies, frames)
+    extent = _world_box(frames, every)
     fig, ax = _pyplot().subplots(figsize=_figsize(_projected_box(extent, view, radius),
                                             10.0, most=12.0), dpi=80)
 

@@ -125,6 +125,10 @@ class Kinematic:
         self.body = self.rest.moved(self.R, self.s)
         return self
 
+    def body_at(self, t):
+        """The body as it is at time t, leaving its pose as it is."""
+        return self.rest.moved(*self.motion.pose(float(t)))
+
     def phi(self, x):
         return self.body.phi(x)
 

@@ -231,8 +231,8 @@ class Simulation:
     def posed(self, t=None):
         """The bodies where they are now, or at time ``t`` (a moving one as
         its posed body)."""
-        return tuple((b.body if t is None else b.rest.moved(*b.motion.pose(t)))
-                     if moving(b) else b for b in self.bodies)
+        return tuple((b.body if t is None else b.body_at(t)) if moving(b) else b
+                     for b in self.bodies)
 
     @property
     def moving(self):
@@ -269,9 +269,10 @@ class Simulation:
     def draw_snapshot(self, title, P):
         """Keep a snapshot for the panel and have its PNG drawn (rank 0), the
         bodies as they were at its time (title: "t = 0.4 s")."""
-        bodies = self.posed(float(title.split()[2]))
+        when = title.split()[2]
+        bodies = self.posed(float(when))
         self.frames.append((title, P, bodies))
-        self.paint("draw", self._path(f"{self.scene}_t{title.split()[2]}s.png"), P,
+        self.paint("draw", self._path(f"{self.scene}_t{when}s.png"), P,
                    self.full.fabric.radius, view=self.view, bodies=bodies,
                    title=f"{self.scene}, {self.system.kind} model, {title}")
 
