@@ -37,18 +37,23 @@ junction. Physical lengths are the unit lengths times ``radius / r``.
 
 Knitted in the round (``shape="tube"``) every course closes on itself: the
 flat curve is wrapped around the y axis, x onto the angle θ = (x − t₀)/nc and
-z onto the radius, on a circle of nc units (a course's 2π nc around),
+z onto the radius ρ = nc + d + z, the loops' innermost depth z = −d on a
+circle of nc units (a course's 2π nc around),
 
-    γ̃_f(t) = ((nc + z) sin θ,  y,  (nc + z) cos θ),   (x, y, z) = γ_f(t),
+    γ̃_f(t) = (ρ sin θ,  y,  ρ cos θ),   (x, y, z) = γ_f(t),
 
-and each yarn is a closed cubic B-spline of n_f = 8 nc control points, one
-a junction, interpolating γ̃_f at all of them (``bspline.periodic_interpolant``;
-a pattern's depths are those of its flat course at the junctions). The
-technical back (+z) faces outwards: a tube is seen from outside inside out,
-its chart still read from the face. We chose closed courses over
-the single helical yarn of a circular knitting machine: every course is the
-same ring, the tube's ends are level, and whole yarns still spread over the
-ranks.
+so that no arc is shorter than in the flat course: the legs of neighbouring
+stitches, innermost, stay as far apart as flat (1.05 × 2r), where a circle
+of nc units through z = 0 brought them to 0.97 × 2r at 16 stitches round
+(0.90 at 8), closer than touching; the heads and sinkers, outermost, open
+by (nc + 2d)/nc. Each yarn is a closed cubic B-spline of n_f = 8 nc
+control points, one a junction, interpolating γ̃_f at all of them
+(``bspline.periodic_interpolant``; a pattern's depths are those of its
+flat course at the junctions). The technical back (+z) faces outwards: a
+tube is seen from outside inside out, its chart still read from the face.
+We chose closed courses over the single helical yarn of a circular
+knitting machine: every course is the same ring, the tube's ends are level,
+and whole yarns still spread over the ranks.
 """
 
 import functools
@@ -160,7 +165,8 @@ class Jersey:
         z = s.d * np.cos(2 * t) if z is None else z
         if self.closed:
             theta = (x - T0) / self.cols
-            x, z = (self.cols + z) * np.sin(theta), (self.cols + z) * np.cos(theta)
+            rho = self.cols + s.d + z        # the legs, z = −d, as far apart as flat
+            x, z = rho * np.sin(theta), rho * np.cos(theta)
         return self.scale * np.stack([x, y, z], axis=-1)
 
     def contacts(self):
