@@ -34,12 +34,13 @@ apt:
 
 # The venv sees Debian's numpy/petsc4py; a .pth file points at Debian's
 # real-scalar petsc4py when /usr/lib/petsc (from the -dev package) is absent.
-# pip install -e . also compiles the yarn kernels (Cython) in place. The IPC
-# Toolkit (yarn contact) comes as a wheel, without its dependencies (they are
-# Debian's: numpy, scipy), so that pip never replaces Debian's numpy.
+# pip install -e . also compiles the yarn and contact kernels (Cython) in
+# place. The IPC Toolkit (yarn contact) comes as a wheel, without its
+# dependencies (they are Debian's: numpy, scipy), so that pip never replaces
+# Debian's numpy.
 IPCTK   := ipctk==1.6.1
 
-$(VENV)/.installed: setup.py knitfem/yarn/_compiled.pyx Makefile
+$(VENV)/.installed: setup.py knitfem/yarn/_compiled.pyx knitfem/contact/_pairs.pyx Makefile
 	test -x $(VPY) || $(PYTHON) -m venv --system-site-packages $(VENV)
 	site=$$($(VPY) -c "import sysconfig; print(sysconfig.get_paths()['purelib'])"); \
 	petsc=$$(ls -d /usr/lib/petscdir/petsc3.*/x86_64-linux-gnu-real/lib/python3/dist-packages | tail -n 1); \
@@ -74,4 +75,5 @@ docs: setup
 
 clean:
 	rm -rf $(VENV) out *.egg-info build knitfem/yarn/_compiled.c knitfem/yarn/*.so \
+	  knitfem/contact/_pairs.c knitfem/contact/*.so \
 	  docs/_build docs/_generated

@@ -4,7 +4,8 @@ Dependencies come from Debian (petsc4py, mpi4py, numpy, scipy, h5py, meshio,
 matplotlib); they are not listed in install_requires so that pip never
 replaces Debian's numpy, which petsc4py is built against.
 
-The compiled yarn kernels (``knitfem/yarn/_compiled.pyx``) are built here by
+The compiled yarn kernels (``knitfem/yarn/_compiled.pyx``) and the yarn
+contact's (``knitfem/contact/_pairs.pyx``) are built here by
 Debian's Cython (``cython3``) and gcc: ``pip install -e .`` (``make setup``)
 compiles them in place.
 """
@@ -14,6 +15,8 @@ from setuptools import Extension, setup
 
 KERNELS = Extension("knitfem.yarn._compiled", ["knitfem/yarn/_compiled.pyx"],
                     extra_compile_args=["-O3"], libraries=["blas"])
+PAIRS = Extension("knitfem.contact._pairs", ["knitfem/contact/_pairs.pyx"],
+                  extra_compile_args=["-O3"])
 
 setup(
     name="knitfem",
@@ -25,6 +28,6 @@ setup(
               "solvers", "benchmarks"],
     package_data={"solvers": ["*.rc"]},
     python_requires=">=3.9",
-    ext_modules=cythonize([KERNELS], language_level=3),
+    ext_modules=cythonize([KERNELS, PAIRS], language_level=3),
     entry_points={"console_scripts": ["knitfem = knitfem.cli.main:main"]},
 )

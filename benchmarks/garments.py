@@ -119,15 +119,11 @@ def main():
         raise KnitError(f"-bench_cases {','.join(unknown)}: use some of "
                         + ",".join(COMMANDS))
     base = os.path.join("out", "benchmarks", STUDY)      # the runs' own output
-    try:                           # cases not run now keep their last results
-        rec = read_json(STUDY)
-    except OSError:
-        rec = dict(study=STUDY, cases={})
-    rows = []
+    rows, done = [], {}
     for case in cases:
         runs = {m: one_run(case, m, base) for m in ("full", "reduced")}
         cmp = compare(case, runs["full"], runs["reduced"], base)
-        rec["cases"][case] = dict(command=COMMANDS[case], **runs, comparison=cmp)
+        done[case] = dict(command=COMMANDS[case], **runs, comparison=cmp)
         for m, r in runs.items():
             rows.append([case, m, r.get("failed") or f"{r['process_s']:.1f} s",
                          r.get("steps", "-"), mm(r.get("drop")), mm(r.get("sag")),
@@ -135,6 +131,11 @@ def main():
                          mm(r.get("lowest_point_below_collider_centre")),
                          f"{cmp['speedup']:.1f}x, RMS {mm(cmp['rms_distance'])} mm"
                          if cmp and m == "reduced" else ""])
+    try:        # cases not run now keep their last results, read at the end:
+        rec = read_json(STUDY)      # a study of other cases may have run meanwhile
+    except OSError:
+        rec = dict(study=STUDY, cases={})
+    rec["cases"].update(done)
     write_json(PETSc.COMM_WORLD.tompi4py(), STUDY, rec)
     PETSc.Sys.Print(markdown_table(
         ["case", "model", "process", "steps", "drop (mm)", "sag (mm)",

@@ -36,9 +36,10 @@ crossing (s_a, s_b) the samples of yarn a within ``window`` of s_a and of
 yarn b within ``window`` of s_b are excluded from each other (a sparse
 filter; a window on a closed yarn reaches across its seam): the crossing
 holds that pair at its rest separation, and a barrier there would fight the
-constraint. Pairs the template itself holds within half the band of
-touching (a tube's legs, 0.99 × 2r apart) are excluded the same way
-(``tight_at_rest`` edge pairs): no band above them could vanish at rest.
+constraint. Pairs a rest state itself holds within half the band of
+touching are excluded the same way (``tight_at_rest`` edge pairs): no band
+above them could vanish at rest (the templates have none; a relaxed rest
+may).
 The rest's gaps are read on ``Fabric.contact_X`` where the fabric has one (a
 natural knit's template at its own size, when X is that template scaled to
 a shorter loop: read on X, its gaps would close and a 10×10 seed at 91 % of
@@ -51,8 +52,9 @@ Broad phase: a Verlet list of the edge pairs within the band, a margin
 and a skin (a k-d tree of the edges' midpoints, segment distances
 vectorised; the toolkit's own broad phase found 57 000 box candidates on
 the 7×7 jersey and took 7–18 ms a call), found again when a sample has
-moved by half the skin. A pair's distance changes by at most the moves of
-its two edges since the list was made, so only the pairs that this bound
+moved by half the skin, less the samples' common move (a knit falling or
+sliding whole keeps its list). A pair's distance changes by at most the
+moves of its two edges since the list was made, so only the pairs that this bound
 lets near enough are measured again, and only the pairs in the band are
 handed to the toolkit (none most of the time: E_y and its derivatives are
 then 0 without a call). Step filter: ``step_fraction``, a conservative
@@ -84,6 +86,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from knitfem.yarn import bspline
+from knitfem.yarn.kernels import KINDS, compiled_module
 
 __all__ = ["YarnContact", "segment_distance"]
 
@@ -92,6 +95,10 @@ ipctk.set_num_threads(1)
 
 def _fortran(a):
     return np.asfortranarray(a, dtype=float)
+
+
+def _index(a):
+    return np.ascontiguousarray(a, dtype=np.int64)
 
 
 def segment_distance(p0, p1, q0, q1):
@@ -117,11 +124,17 @@ class YarnContact:
     ``EI`` sets the stiffness κ; ``samples`` a segment; ``band`` d̂ / r at
     most; ``self_reach`` and ``window`` (spline parameter) the excluded
     pairs; ``margin`` × r widens the tangent's pattern beyond the band,
-    ``skin`` × r the Verlet list beyond the pattern's reach.
+    ``skin`` × r the Verlet list beyond the pattern's reach; ``kernels``
+    (one of ``kernels.KINDS``) measures the edge pairs in the compiled loops
+    of ``_pairs.pyx`` or by their numpy reference.
     """
 
     def __init__(self, fabric, EI, samples=6, band=0.08, self_reach=8.0,
-                 window=0.5, margin=0.1, skin=0.4):
+                 window=0.5, margin=0.1, skin=0.4, kernels="compiled"):
+        if kernels not in KINDS:
+            raise ValueError(f"kernels {kernels!r}: expected one of {', '.join(KINDS)}")
+        self._pairs = compiled_module("knitfem.contact._pairs", 1) \
+            if kernels == "compiled" else None
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
         self.margin = margin * r
@@ -174,8 +187,8 @@ class YarnContact:
         self._patch_ids = self._patches()
         self.excluded = self._excluded(fabric, window)
         self.mesh.can_collide = self._filter()
-        # pairs the template itself brings within half the band (a tube's
-        # closing stitch: 0.99 x 2r) are left out: no band above them vanishes
+        # pairs the rest itself brings within half the band are left out:
+        # no band above them vanishes
         e, f = self.close_edges(V, self.dmin + 0.5 * band * r)
         self.tight_at_rest = len(e)
         if len(e):
@@ -302,13 +315,12 @@ class YarnContact:
         again (a pair's distance changes by at most those moves)."""
         e, f, d0 = self._candidates(V)
         if self.moved_at is None or not np.array_equal(self.moved_at, V):
-            dv = np.sqrt(np.sum((V - self.candidates_at) ** 2, axis=1))
+            dv = np.sqrt(np.sum(self._moves(V) ** 2, axis=1))
             self.edge_moved = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
             self.moved_at = V.copy()
         maybe = d0 - self.edge_moved[e] - self.edge_moved[f] < within
         e, f = e[maybe], f[maybe]
-        e0, e1 = self.edges[:, 0], self.edges[:, 1]
-        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        d = self.edge_distances(V, e, f)
         near = d < within
         return e[near], f[near], d[near]
 
@@ -338,12 +350,22 @@ class YarnContact:
         samples where they were last found, and their distances there; found
         again at V when a sample has moved more than skin / 2 since: every pair
         within the band and the margin at V is among them (a Verlet list;
-        two edges close in by at most twice the largest move)."""
-        V0 = self.candidates_at
-        if V0 is None or np.max(np.sum((V - V0) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
+        two edges close in by at most twice the largest move, less the
+        samples' common move: ``_moves``)."""
+        if self.candidates_at is None or \
+                np.max(np.sum(self._moves(V) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
             self._make_list(V)
             self.candidate_builds += 1
         return self.candidate_edges
+
+    def _moves(self, V):
+        """The samples' moves since the Verlet list was made, less their
+        common part c (the centre of their bounding box): two points move
+        apart by |u_a − u_b| ≤ |u_a − c| + |u_b − c| for any c, so the list's
+        bounds hold on these, and a knit that falls or slides whole keeps
+        its list."""
+        u = V - self.candidates_at
+        return u - 0.5 * (u.max(axis=0) + u.min(axis=0))
 
     def _make_list(self, V):
         """The Verlet list (``_candidates``) made at the samples V."""
@@ -478,7 +500,7 @@ class YarnContact:
         within = self.dmin + slack[e] + slack[f]
         keep = self._apart(e, f) & (close["v"] - half[e] - half[f] < within)
         e, f, within = e[keep], f[keep], within[keep]
-        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        d = self.edge_distances(V, e, f)
         near = d < within
         return e[near], f[near], d[near]
 
@@ -505,9 +527,22 @@ class YarnContact:
         at = np.minimum(np.searchsorted(self.excluded, key), len(self.excluded) - 1)
         return ok & (self.excluded[at] != key) if len(self.excluded) else ok
 
+    def edge_distances(self, V, e, f):
+        """Distances of the edge pairs (e, f) at the samples V: the compiled
+        loop, or ``segment_distance``."""
+        if self._pairs is not None:
+            return self._pairs.edge_distances(V, self.edges, _index(e), _index(f))
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        return segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+
     def edges_may_touch(self, e, f):
         """Edge pairs without a common sample, one of whose sample pairs may
-        touch (as the toolkit's broad phase decides)."""
+        touch (as the toolkit's broad phase decides): the compiled loop, or
+        its numpy reference."""
+        if self._pairs is not None:
+            p0, p1 = self._patch_ids
+            return self._pairs.edges_may_touch(self.edges, _index(e), _index(f), p0, p1,
+                                               self.sample_yarn, _index(self.excluded))
         a, b = self.edges[e], self.edges[f]
         shared = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))
         may = np.zeros(len(e), bool)
@@ -525,7 +560,7 @@ class YarnContact:
         e, f = close[:, 0], close[:, 1]
         apart = self._apart(e, f)
         e, f = e[apart], f[apart]
-        d = segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
+        d = self.edge_distances(V, e, f)
         hit = d < within
         hit[hit] &= self.edges_may_touch(e[hit], f[hit])
         return (e[hit], f[hit], d[hit]) if distances else (e[hit], f[hit])

@@ -137,7 +137,7 @@ class FullModel:
                                    material.rho * material.gravity,
                                    friction=fabric.friction) \
                 if fabric.bodies else None
-            self.yarn_contact = YarnContact(fabric, material.EI) \
+            self.yarn_contact = YarnContact(fabric, material.EI, kernels=kernels) \
                 if yarn_contact else None
             self.all_conn = fabric.connectivity(0, fabric.nyarn)
             self.pattern_rebuilds = 0
@@ -496,21 +496,29 @@ class FullModel:
             # contact's Hessian (csr_rows: CSR order is key order)
             self.entry_keys = csr_rows(indptr3).astype(np.int64) * N + indices3
             self.tangent_place = K.place(np.arange(len(indices3)))
+            self._contact_slots = None
         self._tangent = K
 
     def _add_contact_hessian(self, x, values):
         """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern, this rank's
         rows; entries the pattern lacks are dropped and counted
-        (``yarn_contact.missed``)."""
+        (``yarn_contact.missed``). The places are found again only when
+        the Hessian's pattern (the pairs in the band) changed."""
         lay = self.layout
         H = self.yarn_contact.hessian(self.all_points(x),
-                                      rows=(lay.cp_start, lay.cp_end)).tocoo()
-        keys = H.row.astype(np.int64) * (3 * lay.ncp) + H.col
-        k = np.minimum(np.searchsorted(self.entry_keys, keys), len(self.entry_keys) - 1)
-        hit = self.entry_keys[k] == keys
+                                      rows=(lay.cp_start, lay.cp_end))
+        slots = self._contact_slots
+        if slots is None or not (np.array_equal(slots[0], H.indptr)
+                                 and np.array_equal(slots[1], H.indices)):
+            keys = csr_rows(H.indptr).astype(np.int64) * (3 * lay.ncp) + H.indices
+            k = np.minimum(np.searchsorted(self.entry_keys, keys),
+                           len(self.entry_keys) - 1)
+            hit = self.entry_keys[k] == keys
+            slots = self._contact_slots = (H.indptr.copy(), H.indices.copy(),
+                                           hit, self.tangent_place[k[hit]])
+        hit, place = slots[2:]
         self.yarn_contact.missed += int(np.count_nonzero(H.data[~hit]))
-        values += np.bincount(self.tangent_place[k[hit]], H.data[hit],
-                              minlength=len(values))
+        values[place] += H.data[hit]          # CSR: each place once
 
     def stiffness_values(self, x, xref=None):
         """Values of K = ∂²E/∂ε² (E_c included) in the yarn elements' CSR pattern

@@ -16,6 +16,8 @@ the tests hold them equal to 1e-12 relative. x is (ncp, 3), C-contiguous
 (a view of a PETSc Vec's array will do).
 """
 
+import importlib
+
 import numpy as np
 
 from knitfem.errors import KnitError
@@ -26,20 +28,21 @@ KINDS = ("compiled", "numpy")
 VERSION = 4                 # of knitfem/yarn/_compiled.pyx, which this module calls
 
 
-def compiled_module():
-    """The compiled extension ``knitfem.yarn._compiled``, or a KnitError saying how
-    to build it (not built, or built from an older source)."""
+def compiled_module(name="knitfem.yarn._compiled", version=VERSION):
+    """The compiled extension ``name`` (by default the yarn kernels) of its
+    source's ``version``, or a KnitError saying how to build it (not built,
+    or built from an older source)."""
     try:
-        from knitfem.yarn import _compiled
+        module = importlib.import_module(name)
     except ImportError as err:
         raise KnitError(f"the compiled kernels are not built ({err}): run `make "
                         "setup` (or `pip install -e .`), or use -knit_kernels "
                         "numpy") from None
-    if getattr(_compiled, "VERSION", None) != VERSION:
+    if getattr(module, "VERSION", None) != version:
         raise KnitError("the compiled kernels were built from an older "
-                        "knitfem/yarn/_compiled.pyx: run `make setup` (or `pip install "
-                        "-e .`), or use -knit_kernels numpy")
-    return _compiled
+                        f"{name.replace('.', '/')}.pyx: run `make setup` (or `pip "
+                        "install -e .`), or use -knit_kernels numpy")
+    return module
 
 
 class NumpyKernels:
