@@ -313,11 +313,9 @@ class YarnContact:
         whose distance where the candidates were found, less the largest
         moves of their two edges since, is below ``within`` are measured
         again (a pair's distance changes by at most those moves)."""
-        e, f, d0 = self._candidates(V)
         if self.moved_at is None or not np.array_equal(self.moved_at, V):
-            dv = np.sqrt(np.sum(self._moves(V) ** 2, axis=1))
-            self.edge_moved = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
-            self.moved_at = V.copy()
+            self._candidates(V)
+        e, f, d0 = self.candidate_edges
         maybe = d0 - self.edge_moved[e] - self.edge_moved[f] < within
         e, f = e[maybe], f[maybe]
         d = self.edge_distances(V, e, f)
@@ -346,17 +344,22 @@ class YarnContact:
         return self.active
 
     def _candidates(self, V):
-        """The edge pairs (e, f) within dmin + d̂ + margin + skin of the
-        samples where they were last found, and their distances there; found
-        again at V when a sample has moved more than skin / 2 since: every pair
-        within the band and the margin at V is among them (a Verlet list;
-        two edges close in by at most twice the largest move, less the
-        samples' common move: ``_moves``)."""
-        if self.candidates_at is None or \
-                np.max(np.sum(self._moves(V) ** 2, axis=1)) > (0.5 * self.skin) ** 2:
+        """Keep ``candidate_edges``, the edge pairs (e, f) within dmin + d̂ +
+        margin + skin of the samples where they were last found and their
+        distances there, for the samples V: found again at V when a sample
+        has moved more than skin / 2 since, so that every pair within the
+        band and the margin at V is among them (a Verlet list; two edges
+        close in by at most twice the largest move, less the samples' common
+        move: ``_moves``); and ``edge_moved``, each edge's largest move
+        since."""
+        dv = None if self.candidates_at is None else \
+            np.sqrt(np.sum(self._moves(V) ** 2, axis=1))
+        if dv is None or dv.max() > 0.5 * self.skin:
             self._make_list(V)
             self.candidate_builds += 1
-        return self.candidate_edges
+            dv = np.zeros(len(V))
+        self.edge_moved = np.maximum(dv[self.edges[:, 0]], dv[self.edges[:, 1]])
+        self.moved_at = V.copy()
 
     def _moves(self, V):
         """The samples' moves since the Verlet list was made, less their
