@@ -54,10 +54,10 @@ vectorised; the toolkit's own broad phase found 57 000 box candidates on
 the 7×7 jersey and took 7–18 ms a call), found again when a sample has
 moved by half the skin, less the samples' common move (a knit falling or
 sliding whole keeps its list). A pair's distance changes by at most the
-moves of its two edges since the list was made, so only the pairs that this bound
-lets near enough are measured again, and only the pairs in the band are
-handed to the toolkit (none most of the time: E_y and its derivatives are
-then 0 without a call). Step filter: ``step_fraction``, a conservative
+moves of its two edges since the list was made, so only the pairs that
+this bound lets near enough are measured again, and only the pairs in the
+band are handed to the toolkit (none most of the time: E_y and its
+derivatives are then 0 without a call). Step filter: ``step_fraction``, a conservative
 bound per pair of edges on the straight path of the samples between two
 states, advanced along the path (the toolkit's Tight Inclusion CCD with a
 minimum distance took 0.1–0.2 s a call on the 7×7 jersey's 2 359 samples),
