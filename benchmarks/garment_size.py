@@ -3,7 +3,7 @@ the steps and the memory of the sleeve and the drape as the yarns and the
 volume grow.
 
     .venv/bin/python -m benchmarks.garment_size                   # every case
-    .venv/bin/python -m benchmarks.garment_size -bench_cases sleeve_60x120
+    .venv/bin/python -m benchmarks.garment_size -bench_cases sleeve_60x120_reduced
     .venv/bin/python -m benchmarks.garment_size -bench_window 0.1
     .venv/bin/python -m benchmarks.garment_size -bench_results benchmarks/results
 
