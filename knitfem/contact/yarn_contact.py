@@ -91,6 +91,7 @@ from knitfem.yarn.kernels import KINDS, compiled_module
 __all__ = ["YarnContact", "segment_distance"]
 
 ipctk.set_num_threads(1)
+PAIRS_VERSION = 1           # of knitfem/contact/_pairs.pyx, which this module calls
 
 
 def _fortran(a):
@@ -133,7 +134,7 @@ class YarnContact:
                  window=0.5, margin=0.1, skin=0.4, kernels="compiled"):
         if kernels not in KINDS:
             raise ValueError(f"kernels {kernels!r}: expected one of {', '.join(KINDS)}")
-        self._pairs = compiled_module("knitfem.contact._pairs", 1) \
+        self._pairs = compiled_module("knitfem.contact._pairs", PAIRS_VERSION) \
             if kernels == "compiled" else None
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
