@@ -221,9 +221,12 @@ def test_full_model_forces_and_tangent_on_any_ranks():
     assert np.allclose(gather(COMM, Q) - gather(COMM, Q0), -yc.gradient(P),
                        rtol=0, atol=1e-15 * np.abs(yc.gradient(P)).max())
     full.begin_step(x)
-    # a second state of the same pairs in the band: its Hessian goes to the
-    # places found for the first
-    for Pk in (P, P + 1e-3 * R * np.sin(np.arange(P.size)).reshape(P.shape)):
+    # two more states of the same pairs in the band, off the crossing's
+    # symmetry (at P the Hessian has 72 nonzeros, off it 324): the second's
+    # Hessian goes to the places found for the first
+    P2, P3 = (P + 1e-3 * R * f(np.arange(P.size)).reshape(P.shape) for f in (np.sin, np.cos))
+    assert np.array_equal(yc.hessian(P2).indices, yc.hessian(P3).indices)
+    for Pk in (P, P2, P3):
         x.getArray()[:] = Pk.ravel()[lo:hi]
         K = to_scipy(full.stiffness(x)).toarray()
         K0 = to_scipy(full_off.stiffness(x)).toarray()

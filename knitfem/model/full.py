@@ -503,7 +503,8 @@ class FullModel:
         """values += ∂²E_y/∂ε² (PSD-projected) in K's pattern, this rank's
         rows; entries the pattern lacks are dropped and counted
         (``yarn_contact.missed``). The places are found again only when
-        the Hessian's pattern (the pairs in the band) changed."""
+        the Hessian's pattern changed (the pairs in the band, or entries
+        that vanish exactly, as at a symmetric crossing)."""
         lay = self.layout
         H = self.yarn_contact.hessian(self.all_points(x),
                                       rows=(lay.cp_start, lay.cp_end))
