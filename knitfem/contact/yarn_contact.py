@@ -134,7 +134,7 @@ class YarnContact:
                  window=0.5, margin=0.1, skin=0.4, kernels="compiled"):
         if kernels not in KINDS:
             raise ValueError(f"kernels {kernels!r}: expected one of {', '.join(KINDS)}")
-        self._pairs = compiled_module("knitfem.contact._pairs", PAIRS_VERSION) \
+        self._kernels = compiled_module("knitfem.contact._pairs", PAIRS_VERSION) \
             if kernels == "compiled" else None
         r = fabric.radius
         self.radius, self.dmin = r, 2.0 * r
@@ -241,7 +241,9 @@ class YarnContact:
         return runs[0] & runs[1] & ipctk.make_sparse_filter(near, True)
 
     def _keys(self, a, b):
-        """Sorted unique keys min · nsamples + max of sample pairs (a, b)."""
+        """Sorted unique keys min · nsamples + max of sample pairs (a, b),
+        int64 (the compiled filter reads them as they are)."""
+        a, b = _index(a), _index(b)
         return np.unique(np.minimum(a, b) * len(self.sample_yarn) + np.maximum(a, b))
 
     def _excluded(self, fabric, window):
@@ -534,8 +536,8 @@ class YarnContact:
     def edge_distances(self, V, e, f):
         """Distances of the edge pairs (e, f) at the samples V: the compiled
         loop, or ``segment_distance``."""
-        if self._pairs is not None:
-            return self._pairs.edge_distances(V, self.edges, _index(e), _index(f))
+        if self._kernels is not None:
+            return self._kernels.edge_distances(V, self.edges, _index(e), _index(f))
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         return segment_distance(V[e0[e]], V[e1[e]], V[e0[f]], V[e1[f]])
 
@@ -543,10 +545,10 @@ class YarnContact:
         """Edge pairs without a common sample, one of whose sample pairs may
         touch (as the toolkit's broad phase decides): the compiled loop, or
         its numpy reference."""
-        if self._pairs is not None:
+        if self._kernels is not None:
             p0, p1 = self._patch_ids
-            return self._pairs.edges_may_touch(self.edges, _index(e), _index(f), p0, p1,
-                                               self.sample_yarn, _index(self.excluded))
+            return self._kernels.edges_may_touch(self.edges, _index(e), _index(f), p0, p1,
+                                               self.sample_yarn, self.excluded)
         a, b = self.edges[e], self.edges[f]
         shared = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))
         may = np.zeros(len(e), bool)

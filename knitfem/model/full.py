@@ -166,6 +166,7 @@ class FullModel:
             self.nonlinear_constraints = cons_asm.nonlinear
             self.ncon, self.constraint_kind = cons_asm.count, cons_asm.kind
             self.K, self._slot3, self._tangent = None, None, None
+            self._contact_slots = None         # the contact Hessian's places in K
             self.Qg = self.M.createVecLeft()
             G = self.M.createVecRight()
             G.getArray().reshape(-1, 3)[:, 1] = -material.gravity
@@ -508,7 +509,7 @@ class FullModel:
         lay = self.layout
         H = self.yarn_contact.hessian(self.all_points(x),
                                       rows=(lay.cp_start, lay.cp_end))
-        slots = self._contact_slots
+        slots = self._contact_slots        # (indptr, indices, hit, place)
         if slots is None or not (np.array_equal(slots[0], H.indptr)
                                  and np.array_equal(slots[1], H.indices)):
             keys = csr_rows(H.indptr).astype(np.int64) * (3 * lay.ncp) + H.indices
@@ -517,7 +518,7 @@ class FullModel:
             hit = self.entry_keys[k] == keys
             slots = self._contact_slots = (H.indptr.copy(), H.indices.copy(),
                                            hit, self.tangent_place[k[hit]])
-        hit, place = slots[2:]
+        _, _, hit, place = slots
         self.yarn_contact.missed += int(np.count_nonzero(H.data[~hit]))
         values[place] += H.data[hit]          # CSR: each place once
 
