@@ -72,7 +72,8 @@ def test_segment_distance_cases():
 def test_compiled_edge_pairs_are_the_numpy_references(shape):
     """The compiled broad phase (``_pairs.pyx``) finds the numpy reference's
     edge pairs, at its distances, on a seed stitch's template shaken by 0.3 r
-    (excluded pairs near crossings, patches along a yarn, a tube's seams)."""
+    (excluded pairs near crossings, patches along a yarn, a tube's seams),
+    and its step filter cuts random moves where the reference does."""
     from knitfem.knit.chart import named_chart
 
     fab = jersey_fabric(Jersey(6, 8, knit=shape, chart=named_chart("seed", 6, 8)))
@@ -88,6 +89,11 @@ def test_compiled_edge_pairs_are_the_numpy_references(shape):
     g, h = cKDTree(mid).query_pairs(4 * R, output_type="ndarray").T
     may = compiled.edges_may_touch(g, h)
     assert np.array_equal(may, numpy.edges_may_touch(g, h)) and 0.1 < may.mean() < 0.9
+    P0 = fab.X.reshape(-1, 3) + 0.05 * R * rng.standard_normal((fab.npoints, 3))
+    for scale in (0.3, 1.0, 3.0):                  # the step filter's advancement
+        P1 = P0 + scale * R * rng.standard_normal((fab.npoints, 3))
+        t = compiled.step_fraction(P0, P1)
+        assert t == numpy.step_fraction(P0, P1) and 0.0 < t < 1.0      # measured equal
     with pytest.raises(ValueError, match="kernels 'fortran'"):
         YarnContact(fab, Material().EI, kernels="fortran")
 
