@@ -94,6 +94,8 @@ def test_compiled_edge_pairs_are_the_numpy_references(shape):
         P1 = P0 + scale * R * rng.standard_normal((fab.npoints, 3))
         t = compiled.step_fraction(P0, P1)
         assert t == numpy.step_fraction(P0, P1) and 0.0 < t < 1.0      # measured equal
+    V[3] = np.nan                                  # a state blown up: no pairs
+    assert all(len(a) == 0 for a in compiled.close_edges(V, 4 * R, distances=True))
     with pytest.raises(ValueError, match="kernels 'fortran'"):
         YarnContact(fab, Material().EI, kernels="fortran")
 

@@ -176,14 +176,15 @@ def close_pairs(const double[:, :] V, const int64_t[:, ::1] edges, double within
     max h_e at least (larger when there would be more than about 8 cells
     an edge), so the 5 × 5 × 5 cells about an edge's (25 runs of 5 keys)
     hold every f that may be that close; each pair is met once, from the
-    edge that comes first in key order."""
+    edge that comes first in key order. Samples that are not finite (a
+    state blown up) give no pairs."""
     cdef Py_ssize_t n = edges.shape[0]
-    if n == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     Va = np.asarray(V)
     E = np.asarray(edges)
     mid_a = 0.5 * (Va[E[:, 0]] + Va[E[:, 1]])
     half_a = 0.5 * np.linalg.norm(Va[E[:, 1]] - Va[E[:, 0]], axis=1)
+    if n == 0 or not np.isfinite(mid_a).all():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     side = 0.5 * (within + 2.0 * half_a.max())
     extent = np.ptp(mid_a, axis=0)
     cells = np.prod(np.floor(extent / side) + 1)
@@ -200,8 +201,8 @@ def close_pairs(const double[:, :] V, const int64_t[:, ::1] edges, double within
     cdef const int64_t[::1] dims = dims_a, order = order_a, start = start_a
     cdef Found out
     cdef Py_ssize_t first, i, j, at, end, lo, hi
-    cdef int dx, dy, dz, failed = 0
-    cdef int64_t cx, cy, cz, key, a, b
+    cdef int dx, dy, failed = 0
+    cdef int64_t cx, cy, key, a, b
     cdef double u, v, z, w, gap, d, slack = 1e-9 * within
     out.e, out.f, out.d, out.n, out.size = NULL, NULL, NULL, 0, 0
     with nogil:
