@@ -188,8 +188,9 @@ def close_pairs(const double[:, :] V, const int64_t[:, ::1] edges, double within
     side = 0.5 * (within + 2.0 * half_a.max())
     extent = np.ptp(mid_a, axis=0)
     cells = np.prod(np.floor(extent / side) + 1)
-    if cells > 8 * n + 1000:                     # at most ~8 cells an edge
-        side *= (cells / (8 * n + 1000)) ** (1 / 3)
+    while cells > 8 * n + 1000:                  # at most ~8 cells an edge
+        side *= max((cells / (8 * n + 1000)) ** (1 / 3), 1.25)
+        cells = np.prod(np.floor(extent / side) + 1)
     cell_a = np.floor((mid_a - mid_a.min(axis=0)) / side).astype(np.int64)
     dims_a = cell_a.max(axis=0) + 1
     key_a = (cell_a[:, 0] * dims_a[1] + cell_a[:, 1]) * dims_a[2] + cell_a[:, 2]
