@@ -58,6 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from knitfem.contact.motion import moving
+from knitfem.contact.segments import closest_parameters
 
 __all__ = ["Sphere", "Capsule", "Plane", "Barrier", "parse_colliders", "KINDS"]
 
@@ -92,6 +93,12 @@ class Sphere:
         n, r = _unit(x - self.centre)
         H = (np.eye(3) - n[:, :, None] * n[:, None, :]) / np.maximum(r, 1e-300)[:, None, None]
         return r - self.R, n, H
+
+    def lowest(self, p, q):
+        """τ ∈ [0, 1] where the paths p + τ q (n, 3 each) come nearest the
+        sphere: the closest approach to its centre."""
+        qq = np.sum(q * q, axis=1)
+        return np.clip(-np.sum((p - self.centre) * q, axis=1) / np.where(qq > 0, qq, 1.0), 0, 1)
 
     def describe(self):
         return f"sphere centre {np.round(self.centre, 6).tolist()} R {self.R:g} m"
@@ -135,6 +142,12 @@ class Capsule:
         H = (P - n[:, :, None] * n[:, None, :]) / np.maximum(r, 1e-300)[:, None, None]
         return r - self.R, n, H
 
+    def lowest(self, p, q):
+        """τ ∈ [0, 1] where the paths p + τ q come nearest the capsule: the
+        closest points of each path and the axis (``segments``)."""
+        a = np.broadcast_to(self.a, p.shape)
+        return closest_parameters(p, p + q, a, a + (self.b - self.a))[0]
+
     def describe(self):
         return (f"capsule {np.round(self.a, 6).tolist()} to "
                 f"{np.round(self.b, 6).tolist()} R {self.R:g} m")
@@ -168,6 +181,10 @@ class Plane:
         n = self.normal / np.linalg.norm(self.normal)
         return (x - self.point) @ n, np.broadcast_to(n, x.shape), \
             np.zeros((len(x), 3, 3))
+
+    def lowest(self, p, q):
+        """τ ∈ [0, 1] where the paths p + τ q come nearest the plane (an end)."""
+        return (q @ self.normal < 0).astype(float)
 
     def describe(self):
         return (f"plane through {np.round(self.point, 6).tolist()} normal "
@@ -473,27 +490,38 @@ class Barrier:
         takes no quadrature point below δ = min(δ(x), 0) − ĥ (local): a
         Newton update stops about where a yarn surface meets a body, in
         the barrier whose stiffness the next iteration knows, rather than
-        far inside it (a step filter, as in IPC). Along a straight path φ is convex for a
-        sphere, a capsule or a plane, so the first crossing of each point is
-        found by bisection."""
+        far inside it (a step filter, as in IPC).
+
+        Each body's φ is convex along a straight path (a sphere's, a
+        capsule's and a plane's are distances to convex sets), so a path
+        that dips below the bound does so once, before its lowest point τ*
+        (``lowest``: also for a path that passes through a body and ends
+        beyond it), and its first crossing is found by bisection on
+        [0, τ*]. Only paths that can reach the bound are looked at: φ is
+        1-Lipschitz, so φ(p + τq) ≥ φ(p) − |q|."""
         start, _, p = self.surface_distance(x)
         p, q = p.reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
-
-        def delta(pts):
-            return np.min([body.phi(pts) for body in self.bodies], axis=0) - self.radius
-
-        bound = np.minimum(start.ravel(), 0.0) - self.gap
-        out = np.flatnonzero(delta(p + q) < bound)
-        if not len(out):
-            return 1.0
-        p, q, bound = p[out], q[out], bound[out]
-        lo, hi = np.zeros(len(out)), np.ones(len(out))
-        for _ in range(iterations):
-            mid = 0.5 * (lo + hi)
-            below = delta(p + mid[:, None] * q) < bound
-            hi = np.where(below, mid, hi)
-            lo = np.where(below, lo, mid)
-        return float(lo.min())
+        bound = np.minimum(start.ravel(), 0.0) - self.gap + self.radius   # on φ
+        reach = np.linalg.norm(q, axis=1)
+        tau = 1.0
+        for body in self.bodies:
+            near = np.flatnonzero(body.phi(p) - reach < bound)
+            if not len(near):
+                continue
+            p_, q_, b_ = p[near], q[near], bound[near]
+            hi = body.lowest(p_, q_)
+            cross = body.phi(p_ + hi[:, None] * q_) < b_
+            if not cross.any():
+                continue
+            p_, q_, b_, hi = p_[cross], q_[cross], b_[cross], hi[cross]
+            lo = np.zeros(len(b_))
+            for _ in range(iterations):
+                mid = 0.5 * (lo + hi)
+                below = body.phi(p_ + mid[:, None] * q_) < b_
+                hi = np.where(below, mid, hi)
+                lo = np.where(below, lo, mid)
+            tau = min(tau, float(lo.min()))
+        return tau
 
     def min_distance(self, x):
         """Smallest δ (local; +inf without elements)."""

@@ -135,6 +135,9 @@ class Kinematic:
     def distance(self, x):
         return self.body.distance(x)
 
+    def lowest(self, p, q):
+        return self.body.lowest(p, q)
+
     def surface(self, size=None):
         return self.body.surface(size)
 

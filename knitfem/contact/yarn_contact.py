@@ -87,6 +87,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from knitfem.contact.segments import segment_distance
 from knitfem.yarn import bspline
 from knitfem.yarn.kernels import KINDS, compiled_module
 
@@ -102,22 +103,6 @@ def _fortran(a):
 
 def _index(a):
     return np.ascontiguousarray(a, dtype=np.int64)
-
-
-def segment_distance(p0, p1, q0, q1):
-    """Distance of the segments p0p1 and q0q1, row-wise (n, 3) each: the
-    closest points p0 + s d₁, q0 + t d₂ with s, t clamped to [0, 1] (Ericson,
-    Real-Time Collision Detection, 5.1.9; no segment of zero length)."""
-    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
-    a, e = np.sum(d1 * d1, 1), np.sum(d2 * d2, 1)
-    b, c, f = np.sum(d1 * d2, 1), np.sum(d1 * r, 1), np.sum(d2 * r, 1)
-    denom = a * e - b * b
-    s = np.where(denom > 1e-12 * a * e,
-                 np.clip((b * f - c * e) / np.where(denom > 0, denom, 1.0), 0, 1), 0.0)
-    t = (b * s + f) / e
-    s = np.where(t < 0, np.clip(-c / a, 0, 1), np.where(t > 1, np.clip((b - c) / a, 0, 1), s))
-    t = np.clip(t, 0, 1)
-    return np.linalg.norm(r + d1 * s[:, None] - d2 * t[:, None], axis=1)
 
 
 class YarnContact:
