@@ -12,7 +12,12 @@ normal n = ∇φ and the curvature ∇²φ:
 The yarn surface (centreline ± r) keeps out of a body by a smooth barrier on
 the distance of the surface, δ = φ(x) − r, at the yarn quadrature points:
 
-    E_c = Σ_{e,q} w_q |X'| f(δ_eq),   f(δ) = κ/3 (ĥ − δ)³ for δ < ĥ, else 0,
+    E_c = Σ_b Σ_{e,q} w_q |X'| f(δ_b,eq),   f(δ) = κ/3 (ĥ − δ)³ for δ < ĥ, else 0,
+
+a barrier of each body b (as IPC sums its pairs): a point in the crease
+where two bodies meet (an elbow bent) feels both, smoothly, where a barrier
+on the nearer body's distance alone would turn its normal at once as the
+point crosses the crease's bisector, and Newton would cycle across it.
 
 a C² penalty (f, f', f'' vanish at δ = ĥ) acting within a gap ĥ of the
 surface. Its stiffness κ = 1e4 ρ g / ĥ² makes the barrier force per length
@@ -29,12 +34,12 @@ sparsity pattern: colliders never change it. Only the elements with a
 quadrature point within the gap are evaluated.
 
 Friction (Coulomb, μ = ``-knit_friction``) is lagged as in IPC (Li et al.,
-SIGGRAPH 2020): at the start of a step the points within the gap keep
-their normal force λ = w_q |X'| |f'(δ)|, tangent projector T = I − n nᵀ and
-position x⁰, and the step minimises, with the rest, the dissipative
-potential
+SIGGRAPH 2020): at the start of a step the points within the gap of a body
+keep, for that body, their normal force λ = w_q |X'| |f'(δ_b)|, tangent
+projector T = I − n nᵀ and position x⁰, and the step minimises, with the
+rest, the dissipative potential
 
-    D = Σ_q μ λ f₀(|u|),   u = T (x_q − x⁰),
+    D = Σ_b Σ_q μ λ f₀(|u|),   u = T (x_q − x⁰),
     f₀(y) = y²/ε − y³/(3ε²) + ε/3 (y < ε), y (y ≥ ε),   ε = ε_v h,
 
 so a point slides against a force μλ and sticks (moves by less than ε a
@@ -375,46 +380,52 @@ class Barrier:
                                        + f1_y[..., None, None] * (T - uu))
         return e, (mul * f1_y)[..., None] * u, hess
 
-    def surface_distance(self, x):
-        """δ = min over bodies of φ − r at every quadrature point, which body
-        is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
-        x_eq (ne, nq, 3)). Computed once a state: the forces, the tangent
-        and the step filter at the same x, the bodies where they were
-        (the moving ones' times), share it."""
+    def _distances(self, x):
+        """(δ_b = φ_b − r of every body b (nb, ne, nq), δ = min_b δ_b (ne, nq),
+        the nearest body (ne, nq), the points x_eq (ne, nq, 3)), computed
+        once a state: the forces, the tangent and the step filter at the
+        same x, the bodies where they were (the moving ones' times), share
+        them."""
         x = np.asarray(x)
         poses = tuple(body.time for body in self.bodies if moving(body))
         kept = self.distance_at
         if kept is None or kept[1] != poses or not np.array_equal(kept[0], x):
             pts = self.el.points(x)
-            phi = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
-            nearest = np.argmin(phi, axis=0)
-            shape = pts.shape[:2]
+            each = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
+            each = each.reshape((len(self.bodies),) + pts.shape[:2]) - self.radius
+            nearest = np.argmin(each, axis=0)
             kept = self.distance_at = (
                 x.copy(), poses,
-                ((np.take_along_axis(phi, nearest[None], 0)[0] - self.radius).reshape(shape),
-                 nearest.reshape(shape), pts))
+                (each, np.take_along_axis(each, nearest[None], 0)[0], nearest, pts))
         return kept[2]
 
+    def surface_distance(self, x):
+        """δ = min over bodies of φ − r at every quadrature point, which body
+        is the nearest, and the points: (δ (ne, nq), body index (ne, nq),
+        x_eq (ne, nq, 3))."""
+        return self._distances(x)[1:]
+
     def _active(self, x):
-        """Elements with a point within the gap, and f', f'' (weighted by
-        w_q |X'|) there: (elements, δ, n, H, w f', w f'', nearest body);
-        n and ∇²φ are those of each point's nearest body, formed for these
-        elements only."""
-        delta, nearest, pts = self.surface_distance(x)
-        e = np.flatnonzero((delta < self.gap).any(axis=1))
-        n, H = np.zeros((len(e),) + pts.shape[1:]), np.zeros((len(e),) + pts.shape[1:] + (3,))
+        """The elements with a point within the gap of a body, a row for each
+        such element and body, and f', f'' (weighted by w_q |X'|) there:
+        (elements, δ_b, n_b, ∇²φ_b, w f', w f'', body b), an element within
+        the gap of two bodies listed for each."""
+        each, _, _, pts = self._distances(x)
+        parts = []
         for b, body in enumerate(self.bodies):
-            mine = nearest[e] == b
-            _, n[mine], H[mine] = body.distance(pts[e][mine])
-        s = np.maximum(self.gap - delta[e], 0.0)
-        W = self.el.W[e]
-        return (e, delta[e], n, H, -W * self.kappa * s**2, 2 * W * self.kappa * s,
-                nearest[e])
+            e = np.flatnonzero((each[b] < self.gap).any(axis=1))
+            _, n, H = body.distance(pts[e].reshape(-1, 3))
+            shape = (len(e),) + pts.shape[1:]
+            s = np.maximum(self.gap - each[b, e], 0.0)
+            W = self.el.W[e]
+            parts.append((e, each[b, e], n.reshape(shape), H.reshape(shape + (3,)),
+                          -W * self.kappa * s**2, 2 * W * self.kappa * s,
+                          np.full(s.shape, b)))
+        return tuple(np.concatenate(p) for p in zip(*parts))
 
     def energy(self, x):
         """E_c (local elements)."""
-        delta = self.surface_distance(x)[0]
-        s = np.maximum(self.gap - delta, 0.0)
+        s = np.maximum(self.gap - self._distances(x)[0], 0.0)
         return float(np.sum(self.el.W * self.kappa / 3 * s**3))
 
     def add_gradient(self, x, out, scale=1.0):
