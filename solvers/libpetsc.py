@@ -11,7 +11,8 @@ from contextlib import contextmanager
 import numpy as np
 from petsc4py import PETSc
 
-__all__ = ["library", "Int", "check", "seqaij_values"]
+__all__ = ["library", "Int", "check", "seqaij_values", "line_search",
+           "line_search_type", "set_line_search"]
 
 Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
 
@@ -51,3 +52,40 @@ def seqaij_values(handle, nnz):
     finally:
         check(lib.MatSeqAIJRestoreArrayRead(handle, ctypes.byref(ptr)),
               "MatSeqAIJRestoreArrayRead")
+
+
+def _line_search(snes):
+    """The C handle of the line search of ``snes`` (SNESGetLineSearch)."""
+    ls = ctypes.c_void_p()
+    check(library().SNESGetLineSearch(ctypes.c_void_p(snes.handle), ctypes.byref(ls)),
+          "SNESGetLineSearch")
+    return ls
+
+
+def set_line_search(snes, kind):
+    """Make ``kind`` the line search of ``snes`` (SNESLineSearchSetType);
+    before ``setFromOptions``, -<prefix>snes_linesearch_type overrides it."""
+    check(library().SNESLineSearchSetType(_line_search(snes), kind.encode()),
+          "SNESLineSearchSetType")
+
+
+def line_search_type(snes):
+    """The type of the line search of ``snes`` (SNESLineSearchGetType)."""
+    name = ctypes.c_char_p()
+    check(library().SNESLineSearchGetType(_line_search(snes), ctypes.byref(name)),
+          "SNESLineSearchGetType")
+    return name.value.decode()
+
+
+@contextmanager
+def line_search(snes, kind):
+    """The line search of ``snes`` of the type ``kind`` inside the ``with``,
+    its own type and options back after it. A pre-check belongs to the
+    line search object, not to its type, and stays."""
+    lib, ls, own = library(), _line_search(snes), line_search_type(snes).encode()
+    check(lib.SNESLineSearchSetType(ls, kind.encode()), "SNESLineSearchSetType")
+    try:
+        yield
+    finally:
+        check(lib.SNESLineSearchSetType(ls, own), "SNESLineSearchSetType")
+        check(lib.SNESLineSearchSetFromOptions(ls), "SNESLineSearchSetFromOptions")

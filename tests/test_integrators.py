@@ -1,6 +1,8 @@
 """Implicit integrators and step control: exactness, order, constraints,
 error control, checkpoint state."""
 
+import itertools
+
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -301,3 +303,54 @@ def test_backward_euler_from_the_start_reaches_the_extrapolated_guess_state():
         ends[guess] = gather(SELF, x)
     # measured 4.1e-9 r
     assert np.abs(ends["start"] - ends["extrapolated"]).max() < 5e-8 * model.fabric.radius
+
+
+def falling_reduced(bodies=()):
+    """The reduced model of a free 2 x 2 jersey (no constraint rows: each
+    backward Euler step is the minimum of its Φ) over ``bodies``."""
+    fab = jersey(2, 2)
+    fab.bodies = tuple(bodies)
+    return models(SELF, fab)[1]
+
+
+def test_backtracking_is_the_line_search_where_a_body_moves():
+    """Backward Euler on a model without constraint rows backtracks on Φ
+    when a body moves, takes full steps otherwise, and a user's
+    -<kind>_snes_linesearch_type has the last word."""
+    from knitfem.contact.colliders import Sphere
+    from knitfem.contact.motion import Kinematic, Motion
+    from solvers.libpetsc import line_search_type
+
+    ball = Sphere(np.array([0.0, -0.02, 0.0]), 0.005)
+    turning = Kinematic(ball, Motion([0.0, 1.0], [[0, 0, 0], [0, 0.001, 0]]))
+    kinds = [line_search_type(BackwardEuler(falling_reduced(b), 1e-3).snes)
+             for b in ((), (ball,), (turning,))]
+    assert kinds == ["basic", "basic", "bt"]
+    opts = PETSc.Options()
+    opts.setValue("reduced_snes_linesearch_type", "l2")
+    try:
+        assert line_search_type(BackwardEuler(falling_reduced((turning,)), 1e-3).snes) == "l2"
+    finally:
+        opts.delValue("reduced_snes_linesearch_type")
+
+
+def test_a_line_search_that_finds_no_decrease_leaves_newton_to_full_steps():
+    """Where backtracking finds no decrease of Φ (Φ at its round-off near the
+    minimum; here an objective that rises at every call), the step does not
+    fail:
+    Newton goes on from its last iterate in full steps, to the states of
+    the full-step line search, bit for bit."""
+    from solvers.libpetsc import set_line_search
+
+    ends = []
+    for stuck in (False, True):
+        red = falling_reduced()
+        integ = BackwardEuler(red, 1e-3)
+        if stuck:
+            set_line_search(integ.snes, "bt")
+            calls = itertools.count()
+            integ.snes.setObjective(lambda snes, z: float(next(calls)))
+        x, _, _ = integrate(integ, red, 5e-3)
+        ends.append(x.getArray().copy())
+        assert not stuck or next(calls) > 5               # it was tried
+    assert np.array_equal(ends[0], ends[1]) and np.abs(ends[0]).max() > 0
