@@ -558,16 +558,20 @@ class NewtonStepper:
             zu, zl = self.saddle.split(self.z)
             zu[:] = self.tmp.getArray(readonly=True)
             zl[:] = self.lam.getArray(readonly=True) * self.sigma
-            try:
-                solve_saddle(lambda: self.snes.solve(None, self.z),
-                             self.snes.getKSP())
-            except SolverFailure as err:
-                stats["linear_failures"] += 1
-                raise SimulationError(f"{err}, h = {h:.3g} s", err.curable) from None
-            finally:
-                stats["newton"] += self.snes.getIterationNumber()
-                stats["ksp"] += self.snes.getLinearSolveIterations()
+            self._snes_solve(stats)
         halt_if_requested()
+
+    def _snes_solve(self, stats):
+        """SNES from the iterate in self.z, its iterations counted; a linear
+        solver's failure raised as a SimulationError."""
+        try:
+            solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
+        except SolverFailure as err:
+            stats["linear_failures"] += 1
+            raise SimulationError(f"{err}, h = {self.h:.3g} s", err.curable) from None
+        finally:
+            stats["newton"] += self.snes.getIterationNumber()
+            stats["ksp"] += self.snes.getLinearSolveIterations()
 
     def _in_full_steps(self, stats):
         """After a line search that found no decrease of Φ (a backtracking
@@ -580,14 +584,7 @@ class NewtonStepper:
         if self.snes.getConvergedReason() not in (R.DIVERGED_LINE_SEARCH, R.DIVERGED_LOCAL_MIN):
             return False
         with line_search(self.snes, "basic"):
-            try:
-                solve_saddle(lambda: self.snes.solve(None, self.z), self.snes.getKSP())
-            except SolverFailure as err:
-                stats["linear_failures"] += 1
-                raise SimulationError(f"{err}, h = {self.h:.3g} s", err.curable) from None
-            finally:
-                stats["newton"] += self.snes.getIterationNumber()
-                stats["ksp"] += self.snes.getLinearSolveIterations()
+            self._snes_solve(stats)
         return self.snes.getConvergedReason() > 0
 
     def _pattern_left(self):
