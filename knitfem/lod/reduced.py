@@ -538,8 +538,9 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         E (``elastic_energy``; sampled, with the contact set's barrier and
         friction; else the lagged friction of every yarn element)."""
         E = self.elastic_energy(q)
-        if self.contact is None:
-            E += self.full.friction_potential(self.full_state(q, self.eps))
+        if self.contact is None and self.full.barrier is not None:
+            # every yarn element: elastic_energy has just formed Γq in self.eps
+            E += self.full.friction_potential(self.eps)
         return E - self.Qg.dot(q)
 
     def forces(self, alpha, alphadot, Q):
