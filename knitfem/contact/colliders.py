@@ -14,20 +14,20 @@ the distance of the surface, δ = φ(x) − r, at the yarn quadrature points:
 
     E_c = Σ_b Σ_{e,q} w_q |X'| f(δ_b,eq),   f(δ) = κ/3 (ĥ − δ)³ for δ < ĥ, else 0,
 
-a barrier of each body b (as IPC sums its pairs): a point in the crease
-where two bodies meet (an elbow bent) feels both, smoothly, where a barrier
-on the nearer body's distance alone would turn its normal at once as the
-point crosses the crease's bisector, and Newton would cycle across it.
-
 a C² penalty (f, f', f'' vanish at δ = ĥ) acting within a gap ĥ of the
 surface. Its stiffness κ = 1e4 ρ g / ĥ² makes the barrier force per length
 at contact, κ ĥ², ten thousand times the yarn's weight per length, so a
 resting knit sinks into its gap by about 1 % of ĥ, and the energy at δ = 0,
-κ ĥ³ / 3, stops a yarn falling from centimetres. With x_eq = Σ_a b_a(u_q)
-p_{e,a}, the forces and the tangent are exact:
+κ ĥ³ / 3, stops a yarn falling from centimetres. Each body b has a barrier
+of its own (as IPC sums its pairs): a point in the crease where two bodies
+meet (an elbow bent) feels both, smoothly, where a barrier on the nearer
+body's distance alone would turn its normal at once as the point crosses
+the crease's bisector, and Newton would cycle across it. With
+x_eq = Σ_a b_a(u_q) p_{e,a}, the forces and the tangent are exact (each
+body's n and ∇²φ):
 
-    ∂E_c/∂p_a = Σ_q w_q |X'| f'(δ) b_a n,
-    ∂²E_c/∂p_a∂p_b = Σ_q w_q |X'| b_a b_b (f''(δ) n nᵀ + f'(δ) ∇²φ),
+    ∂E_c/∂p_a = Σ_b Σ_q w_q |X'| f'(δ_b) b_a n,
+    ∂²E_c/∂p_a∂p_b = Σ_b Σ_q w_q |X'| b_a b_b (f''(δ_b) n nᵀ + f'(δ_b) ∇²φ),
 
 4 × 4 blocks of the yarn element itself, so they enter the yarn elements'
 sparsity pattern: colliders never change it. Only the elements with a
