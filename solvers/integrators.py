@@ -270,11 +270,11 @@ class NewtonStepper:
     The line search. Full steps by default; backtracking on Φ where a body
     moves. A body that moves drags its contacts along it near the friction
     cone's edge, where the slip's direction turns within an update and full
-    steps cycle (the reduced 16×10 sleeve on a bending arm: 1 447 Newton
+    steps cycle (the reduced 16×10 sleeve on a bending arm: 1 710 Newton
     iterations for 0.5 s in full steps, 563 backtracking); where bodies
     rest, a knit landing on them does better in full steps, which backtracking
-    cuts to a tenth as the barrier rises (the reduced 12×12 drape: 828
-    against 2 981). A backtracking search that finds no decrease (Φ at its
+    cuts to a tenth as the barrier rises (the reduced 12×12 drape: 884
+    against 2 707). A backtracking search that finds no decrease (Φ at its
     round-off near the minimum) hands the solve to full steps from where it
     stopped (``_in_full_steps``). ``-<kind>_snes_linesearch_type`` chooses.
     """
