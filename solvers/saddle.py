@@ -593,9 +593,12 @@ def failure_or_retry(ksp, err=None):
     if ksp.getConvergedReason() < 0 or err is None:
         return ksp_failure(ksp)
     last = [s.strip() for s in str(err).splitlines() if s.strip()]
+    text = str(err).lower()
+    options = (f"-{prefix}snes_linesearch_type and its options"
+               if "line search" in text or "linesearch" in text
+               else f"-{prefix}ksp_type / -{prefix}pc_type")
     return SolverFailure(f"PETSc error in the {prefix} solve "
-                         f"({last[-1] if last else err}): change "
-                         f"-{prefix}ksp_type / -{prefix}pc_type")
+                         f"({last[-1] if last else err}): change {options}")
 
 
 def solve_saddle(solve, ksp):

@@ -497,3 +497,15 @@ def test_elbow_time_and_collider_motion_move_the_bodies(tmp_path):
     assert p.returncode == 0, p.stdout + p.stderr
     sphere = json.load(open(out / "summary.json"))["bodies"][0]
     assert np.array_equal(sphere["centre"], [0.01, -0.05, 0])  # the last keyframe's
+
+
+def test_a_petsc_error_of_the_line_search_names_its_options(tmp_path):
+    """PETSc refusing a line search setting mid-run (bt has no order 1)
+    stops the run in one line that sends the user to the line search's
+    options, not to the linear solver's."""
+    p = knitfem("run", "-knit_scene", "sleeve", "-knit_rows", "10", "-knit_cols", "16",
+                "-knit_model", "reduced", "-knit_t_end", "0.01", "-knit_snapshots", "0.01",
+                "-reduced_snes_linesearch_order", "1", "-o", str(tmp_path / "o"))
+    last = p.stdout.strip().splitlines()[-1]
+    assert p.returncode == 3 and "unsupported line search order" in last, p.stdout
+    assert "-reduced_snes_linesearch_type" in last and "pc_type" not in last
