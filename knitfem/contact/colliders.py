@@ -510,13 +510,13 @@ class Barrier:
         beyond it), and its first crossing is found by bisection on
         [0, τ*]. Only paths that can reach the bound are looked at: φ is
         1-Lipschitz, so φ(p + τq) ≥ φ(p) − |q|."""
-        start, _, p = self.surface_distance(x)
+        each, start, _, p = self._distances(x)
         p, q = p.reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
         bound = np.minimum(start.ravel(), 0.0) - self.gap + self.radius   # on φ
         reach = np.linalg.norm(q, axis=1)
         tau = 1.0
-        for body in self.bodies:
-            near = np.flatnonzero(body.phi(p) - reach < bound)
+        for body, delta in zip(self.bodies, each):
+            near = np.flatnonzero(delta.ravel() + self.radius - reach < bound)
             if not len(near):
                 continue
             p_, q_, b_ = p[near], q[near], bound[near]
