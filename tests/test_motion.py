@@ -132,7 +132,9 @@ def test_a_floor_moving_at_constant_velocity_carries_a_resting_yarn(mu):
         assert moved[0] == pytest.approx(V * t - V * V / (2 * mu * 9.81), rel=0.01)
     else:
         assert abs(moved[0]) < 1e-16 * r          # no force along x: measured 0
-    assert abs(moved[1]) < 6e-16 * r              # it rests: measured 3.6e-20 m
+    # it rests: measured 3.6e-20 and 5.2e-19 m on two machines (an ulp of its
+    # height, 1.1 r, is 1.2e-19 m)
+    assert abs(moved[1]) < 4e-15 * r
     model.destroy()
 
 

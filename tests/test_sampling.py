@@ -58,7 +58,8 @@ def test_every_element_at_weight_one_is_the_exact_model(kernels, fill, monkeypat
     assert isinstance(s.sampled.rows, np.ndarray) == (fill < 1)
     alpha = deformed(red)
     f, ref = forces(s, alpha), forces(red, alpha)
-    assert np.abs(f - ref).max() <= 1.5e-15 * np.abs(ref).max()  # measured 1.9e-16
+    # measured 1.9e-16 and 1.5e-15 on two machines (their BLAS sum in other orders)
+    assert np.abs(f - ref).max() <= 6e-15 * np.abs(ref).max()
     K = to_scipy(s.stiffness(alpha)).toarray()
     G = to_scipy(red.embedding.Gamma)
     Kref = (G.T @ to_scipy(full.stiffness(red.full_state(alpha))) @ G).toarray()

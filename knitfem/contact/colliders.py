@@ -447,24 +447,28 @@ class Barrier:
         mine = where >= 0                              # rows of this rank
         values += np.bincount(where[mine], blocks.ravel()[mine], minlength=len(values))
 
-    def element_hessian(self, x):
-        """The 12 × 12 blocks of ∂²(E_c + D)/∂p∂p, Σ_q b_a b_b H_q with
+    def quadrature_hessian(self, x):
+        """∂²(E_c + D)/∂x_q² at the quadrature points,
 
             H_q = w f''(δ) n nᵀ + w f'(δ) ∇²φ          (barrier),
             H_q = μλ (f₁' û ûᵀ + f₁/y (T − û ûᵀ))      (friction, lagged),
 
         of the elements with a point within the gap and of the lagged ones:
-        (elements (m,), blocks (m, 12, 12)), an element lagged and within
-        the gap listed twice."""
+        (elements (m,), H (m, nq, 3, 3)), an element lagged and within the
+        gap listed twice."""
         e, _, n, H, d1, d2, _ = self._active(x)
         parts = [(e, d2[..., None, None] * n[..., :, None] * n[..., None, :]
-                  + d1[..., None, None] * H)]                       # (e, q, 3, 3)
+                  + d1[..., None, None] * H)]
         if self.lagged is not None:
             parts.append(self._friction_terms(x)[::2])
+        return tuple(np.concatenate(p) for p in zip(*parts))
+
+    def element_hessian(self, x):
+        """The 12 × 12 blocks Σ_q b_a b_b H_q of ∂²(E_c + D)/∂p∂p
+        (``quadrature_hessian``): (elements (m,), blocks (m, 12, 12))."""
+        e, Hq = self.quadrature_hessian(x)
         B = self.el.B
-        return (np.concatenate([e for e, _ in parts]),
-                np.concatenate([np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
-                                for _, Hq in parts]))
+        return e, np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
 
     def swept_depth(self, x0, x1, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import sparse
 
 from knitfem.contact.colliders import Barrier
+from knitfem.lod.sparse_tangent import QuadratureProduct
 
 __all__ = ["ActiveContact"]
 
@@ -63,6 +64,8 @@ class ActiveContact:
         self.gap, self.friction = whole.gap, whole.mu
         self.weight = full.material.rho * full.material.gravity
         n = embedding.volume.size
+        self.cols, self.vals = embedding.cols, embedding.vals       # Γ̃'s rows (rank's)
+        self.product = None
         self.G = sparse.csr_matrix(
             (embedding.vals.ravel(), embedding.cols.ravel(),
              np.arange(0, embedding.cols.size + 1, embedding.cols.shape[1])),
@@ -85,7 +88,6 @@ class ActiveContact:
         self.active = e
         self.view = ElementView(self.el, e)
         self.Ga = self.G[self.view.points_index]
-        self.Ga3 = sparse.kron(self.Ga, sparse.identity(3), format="csr")
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)
 
@@ -147,24 +149,20 @@ class ActiveContact:
         self.barrier.add_gradient(self._x(alpha), g, -1.0)
         out += self.Ga.T @ g
 
-    def hessian(self, alpha):
-        """Γ_Aᵀ ∇²(E_c + D) Γ_A, a scipy sparse matrix (3n × 3n), as
+    def add_hessian(self, alpha, T):
+        """T's values += Γ_Aᵀ ∇²(E_c + D) Γ_A (``T`` a ``SparseTangent`` or a
+        ``DenseValues``), as
 
-            Σ_e Γ_eᵀ K_e Γ_e = Γ_Pᵀ K_P Γ_P,
+            Σ_q (c_q c_qᵀ) ⊗ H_q,   c_q = Σ_a B_qa Γ̃_{p_a},
 
-        K_e the 12 × 12 blocks of the elements within the gap or lagged
-        (``Barrier.element_hessian``; the others' vanish), K_P their sum on
-        the points P they touch and Γ_P those points' rows of Γ̃ ⊗ I₃: the
-        cost follows the contact region, not the set."""
-        e, blocks = self.barrier.element_hessian(self._x(alpha))
-        points, local = np.unique(self.view.conn[e], return_inverse=True)
-        rows = (3 * local.reshape(-1, 4, 1) + np.arange(3)).reshape(-1, 12)
-        m3 = 3 * len(points)
-        K = sparse.csr_matrix(
-            (blocks.ravel(), (np.repeat(rows, 12, axis=1).ravel(), np.tile(rows, 12).ravel())),
-            shape=(m3, m3))
-        G = self.Ga3[(3 * points[:, None] + np.arange(3)).ravel()]
-        return G.T @ (K @ G)
+        over the quadrature points of the elements within the gap or lagged
+        (``Barrier.quadrature_hessian``; the others' H_q vanish) by
+        ``QuadratureProduct``: the cost follows the contact region, not the
+        set."""
+        if self.product is None or self.product.T is not T:
+            self.product = QuadratureProduct(T, self.cols, self.vals, self.el.B)
+        e, Hq = self.barrier.quadrature_hessian(self._x(alpha))
+        self.product.add(self.view.points_index[self.view.conn[e]], Hq)
 
     def step_limit(self, alpha, dalpha):
         """``Barrier.step_limit`` on the set's points."""

@@ -591,7 +591,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 if self.shell is not None:
                     self.shell.add_hessian(A, R)
                 if self.contact is not None:
-                    R += self.contact.hessian(A).toarray()
+                    self.contact.add_hessian(A, self.R_values)
             return self._dense_stiffness(reduce)
         x = self.full_state(alpha, self.eps)
         ref = None if xref is None else self.full_state(xref, self.eps_ref)
@@ -627,7 +627,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.shell is not None:
                 self.shell.add_tangent(A, T)
             if self.contact is not None:
-                T.add(self.contact.hessian(A))
+                self.contact.add_hessian(A, T)
             self.K = T.assemble()
         return self.K
 
@@ -649,8 +649,11 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         rows of R are copied in."""
         with EV_PTAP:
             if self.K is None:
+                from knitfem.lod.sparse_tangent import DenseValues
+
                 N = 3 * self.embedding.volume.size
                 self.R = np.zeros((N, N))
+                self.R_values = DenseValues(self.R)
             reduce(self.R)
             self._summed(self.R)
             lo, hi = self.M.getOwnershipRange()

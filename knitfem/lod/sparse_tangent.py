@@ -23,7 +23,8 @@ from scipy import sparse
 
 from knitfem.model.assembly import create_aij
 
-__all__ = ["DenseValues", "PatchProduct", "SparseTangent", "scalar_pattern"]
+__all__ = ["DenseValues", "PatchProduct", "QuadratureProduct", "SparseTangent",
+           "scalar_pattern"]
 
 
 def scalar_pattern(A):
@@ -134,9 +135,13 @@ class SparseTangent:
 class DenseValues:
     """A dense N × N array ``R`` seen as a ``SparseTangent``'s values (every
     entry in the pattern, at position r N + c), so that the parts laid out
-    for the sparse tangent add into the dense one the same way."""
+    for the sparse tangent add into the dense one the same way (``R``
+    C-ordered: its values are added in place)."""
 
     def __init__(self, R):
+        if not R.flags.c_contiguous:
+            raise ValueError("DenseValues: R must be a C-ordered array (its entries "
+                             "are added in place through a flat view)")
         self.R, self.N = R, len(R)
 
     @property
@@ -215,3 +220,82 @@ class PatchProduct:
         npatch, rows, wide = self.shape
         Y = (self.Y @ values[self.block].reshape(-1, 9)).reshape(npatch, rows, wide * 9)
         self.T.add_at(self.pos, np.matmul(self.Gt, Y))
+
+
+class QuadratureProduct:
+    """Σ_q (c_q c_qᵀ) ⊗ H_q added to the values of a ``SparseTangent`` (or a
+    ``DenseValues``) ``T``, for quadrature points q of yarn elements whose
+    3 × 3 blocks H_q change from call to call (the contact with bodies),
+
+        c_q = Σ_a B_qa Γ̃_{p_a}      (the volume weights of x_q = Σ_a B_qa p_a),
+
+    the p_a an element's four control points, their rows of Γ̃ (``cols``,
+    ``vals``, (m, k)) and B (nq, 4) the basis at the quadrature points.
+
+    A patch is the points whose rows of Γ̃ have the same columns. The
+    elements are grouped by the patches of their four points (most lie in
+    one, some straddle two); a group's quadrature points reach the union U
+    of its patches' columns, and its share is one GEMM,
+
+        Σ_q c_q (c_q ⊗ H_q)ᵀ = C_Uᵀ Z,   Z_q = c_q ⊗ vec H_q,
+
+    C_U the group's c_q over U, (points, |U|). The positions of a group's
+    entries in ``T`` are found at its first call and kept (by U).
+    """
+
+    def __init__(self, T, cols, vals, B):
+        self.T, self.vals, self.B = T, vals, B
+        self.n = T.N // 3
+        self.columns, patch = np.unique(cols, axis=0, return_inverse=True)
+        self.patch = patch.ravel()                                   # of each point
+        self.kept = {}
+
+    def _positions(self, U):
+        """Positions in T of the entries (3 U_k + i, 3 U_l + j), (w, w, 3, 3)."""
+        key = U.tobytes()
+        pos = self.kept.get(key)
+        if pos is None:
+            c = np.arange(3)
+            w = len(U)
+            rows = (3 * U[:, None, None, None] + c[:, None]).repeat(w, 1)
+            cols = np.broadcast_to(3 * U[None, :, None, None] + c, (w, w, 3, 3))
+            pos = self.kept[key] = self.T.positions(rows, cols)
+        return pos
+
+    def _unions(self, groups):
+        """The union U of the columns of each group of patches (g, 4) as
+        (columns, first, width) of the groups' U laid end to end, and where
+        each patch's columns sit in its group's U, (g, 4, k)."""
+        g, k = len(groups), self.columns.shape[1]
+        cols = self.columns[groups].reshape(g, -1)                   # (g, 4k)
+        keys = np.unique(np.arange(g)[:, None] * self.n + cols)
+        first = np.searchsorted(keys, np.arange(g) * self.n)
+        width = np.diff(np.append(first, len(keys)))
+        within = np.searchsorted(keys, np.arange(g)[:, None] * self.n + cols) - first[:, None]
+        return keys % self.n, first, width, within.reshape(g, 4, k)
+
+    def add(self, conn, H):
+        """T's values += Σ_q (c_q c_qᵀ) ⊗ H_q over the elements of control
+        points ``conn`` (m, 4) (rows of ``cols``) and H (m, nq, 3, 3)."""
+        if not len(conn):
+            return
+        groups, group = np.unique(self.patch[conn], axis=0, return_inverse=True)
+        group = group.ravel()
+        order = np.argsort(group, kind="stable")
+        conn, H, group = conn[order], H[order], group[order]
+        columns, first, width, within = self._unions(groups)
+        m, w_max = len(conn), width.max()
+        Cp = np.zeros((m, 4 * w_max))
+        at = (np.arange(4)[:, None] * w_max + within[group]).reshape(m, -1)
+        np.put_along_axis(Cp, at, self.vals[conn].reshape(m, -1), axis=1)
+        C = np.einsum("qa,eak->eqk", self.B, Cp.reshape(m, 4, w_max))   # (m, nq, w)
+        bounds = np.searchsorted(group, np.arange(len(groups) + 1))
+        pos, val = [], []
+        for g, (s, t) in enumerate(zip(bounds[:-1], bounds[1:])):
+            w = width[g]
+            Cg = C[s:t, :, :w].reshape(-1, w)
+            Z = (Cg[:, :, None] * H[s:t].reshape(-1, 1, 9)).reshape(-1, 9 * w)
+            val.append(Cg.T @ Z)                                     # (k, l i j)
+            pos.append(self._positions(columns[first[g]:first[g] + w]))
+        self.T.add_at(np.concatenate([p.ravel() for p in pos]),
+                      np.concatenate([v.ravel() for v in val]))
