@@ -88,6 +88,7 @@ class ActiveContact:
         self.active = e
         self.view = ElementView(self.el, e)
         self.Ga = self.G[self.view.points_index]
+        self.kept = None
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)
 
@@ -136,7 +137,11 @@ class ActiveContact:
 
     # -- energy, forces, tangent ---------------------------------------------
     def _x(self, alpha):
-        return self.Ga @ alpha
+        """The set's control points Γ_A α, kept for the last α: the energy,
+        forces, tangent and step filter at one state share them."""
+        if self.kept is None or not np.array_equal(self.kept[0], alpha):
+            self.kept = (np.array(alpha), self.Ga @ alpha)
+        return self.kept[1]
 
     def energy(self, alpha):
         """E_c + D on the set."""

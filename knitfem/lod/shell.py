@@ -100,13 +100,18 @@ class ShellStretch:
         self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
         self.where = (patch[order], slot, order)
         self.placed = None            # (T, positions) of add_tangent's first call for T
+        self.kept = None              # (A, t, ē) of the last _strain
         self.dense = None             # add_hessian's dense array as values
 
     def _strain(self, A):
-        """t_q (npts, 3) and ē_w (nwin,)."""
-        t = self.D @ A
-        e = 0.5 * (np.einsum("qi,qi->q", t, t) - self.L2) / self.L2
-        return t, np.bincount(self.win, self.share * e, minlength=len(self.L))
+        """t_q (npts, 3) and ē_w (nwin,), kept for the last A: the energy,
+        forces and tangent at one state share them."""
+        if self.kept is None or not np.array_equal(self.kept[0], A):
+            t = self.D @ A
+            e = 0.5 * (np.einsum("qi,qi->q", t, t) - self.L2) / self.L2
+            self.kept = (np.array(A), t,
+                         np.bincount(self.win, self.share * e, minlength=len(self.L)))
+        return self.kept[1:]
 
     def energy(self, A):
         """E_s = ½ EA Σ_w ξ_w L_w ē_w² of this rank's yarns at α = A (n, 3)."""
