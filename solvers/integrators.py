@@ -110,6 +110,12 @@ def _MPI_MAX():
     return MPI.MAX
 
 
+def _MPI_LAND():
+    from mpi4py import MPI
+
+    return MPI.LAND
+
+
 class SymplecticEuler:
     """Explicit symplectic Euler, the constraints held by SHAKE:
 
@@ -329,6 +335,7 @@ class NewtonStepper:
         if self.descent:
             self.snes.setObjective(self._objective)
         self.missing = None                 # tangent entries missed before a solve
+        self.phi_kept = None                # (z, Φ) of the last objective
         self.user_atol = PETSc.Options().hasName(prefix + "snes_atol")
         new = system.M.createVecLeft
         self.v, self.xe, self.xf, self.vf = new(), new(), new(), new()
@@ -465,7 +472,18 @@ class NewtonStepper:
             fl[:] = self.Cx.getArray(readonly=True) / self.kappa
 
     def _objective(self, snes, z):
-        """Φ at z = (v, μ) (class docstring; collective)."""
+        """Φ at z = (v, μ) (class docstring; collective), kept for the last z
+        of a solve: a line search starts from the iterate its last one
+        accepted, whose Φ it has just computed."""
+        zz = z.getArray(readonly=True)
+        same = self.phi_kept is not None and np.array_equal(self.phi_kept[0], zz)
+        if z.getComm().tompi4py().allreduce(same, op=_MPI_LAND()):
+            return self.phi_kept[1]
+        phi = self._phi(z)
+        self.phi_kept = (zz.copy(), phi)
+        return phi
+
+    def _phi(self, z):
         s = self.system
         self._unpack(z)
         self.tmp.waxpy(-1.0, self.vhat, self.v)
@@ -549,6 +567,7 @@ class NewtonStepper:
 
     def _newton(self, h, stats):
         """One Newton solve of the step h from the predictor."""
+        self.phi_kept = None                   # Φ changes with the step
         with EV_NEWTON:
             self.predict(h, self.tmp)
             if self.yarn_contact:

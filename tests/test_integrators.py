@@ -354,3 +354,33 @@ def test_a_line_search_that_finds_no_decrease_leaves_newton_to_full_steps():
         ends.append(x.getArray().copy())
         assert not stuck or next(calls) > 5               # it was tried
     assert np.array_equal(ends[0], ends[1]) and np.abs(ends[0]).max() > 0
+
+
+def test_backtracking_reuses_the_objective_of_the_iterate_it_accepted():
+    """A line search starts from the iterate the last one accepted, whose Φ
+    is kept (a knit falling on a rising ball): the potential is evaluated
+    once less an iteration, and the states are those of a Φ computed at
+    every call, bit for bit."""
+    from knitfem.contact.colliders import Sphere
+    from knitfem.contact.motion import Kinematic, Motion
+
+    ball = Kinematic(Sphere(np.array([0.002, -0.009, 0.0]), 0.005),
+                     Motion([0.0, 1.0], [[0, 0, 0], [0, 0.05, 0]]))
+    ends, calls, its = [], [], []
+    for kept in (True, False):
+        red = falling_reduced((ball,))
+        integ = BackwardEuler(red, 2e-3)
+        count = itertools.count()
+        potential = red.potential
+        red.potential = lambda q: (next(count), potential(q))[1]
+        if not kept:
+            objective = integ._objective
+            integ.snes.setObjective(
+                lambda snes, z: (setattr(integ, "phi_kept", None), objective(snes, z))[1])
+        x, _, _ = integrate(integ, red, 3e-2)
+        ends.append(x.getArray().copy())
+        calls.append(next(count))
+        its.append(integ.snes.getIterationNumber())
+    assert np.array_equal(ends[0], ends[1]) and min(its) > 2
+    # measured 773 against 1 233 (15 steps)
+    assert calls[0] < 0.7 * calls[1]

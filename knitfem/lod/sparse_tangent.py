@@ -222,6 +222,15 @@ class PatchProduct:
         self.T.add_at(self.pos, np.matmul(self.Gt, Y))
 
 
+UPPER = np.array([0, 1, 2, 4, 5, 8])
+"""The entries i ≤ j of a 3 × 3 block, flat."""
+LOWER = np.array([1, 2, 4])
+"""Of ``UPPER``'s, where those i < j sit: their transposes fill i > j."""
+SLOT_ROW, SLOT_COL = np.array([divmod(c, 3) for c in UPPER]
+                              + [divmod(UPPER[c], 3)[::-1] for c in LOWER]).T
+"""(i, j) of the nine slots of a block as ``QuadratureProduct`` lays them."""
+
+
 class QuadratureProduct:
     """Σ_q (c_q c_qᵀ) ⊗ H_q added to the values of a ``SparseTangent`` (or a
     ``DenseValues``) ``T``, for quadrature points q of yarn elements whose
@@ -239,8 +248,10 @@ class QuadratureProduct:
 
         Σ_q c_q (c_q ⊗ H_q)ᵀ = C_Uᵀ Z,   Z_q = c_q ⊗ vec H_q,
 
-    C_U the group's c_q over U, (points, |U|). The positions of a group's
-    entries in ``T`` are found at its first call and kept (by U).
+    C_U the group's c_q over U, (points, |U|), Z over the six entries i ≤ j
+    of the symmetric H_q (the others are their transposes). The positions
+    of a group's entries in ``T`` are found at its first call and kept (by
+    U).
     """
 
     def __init__(self, T, cols, vals, B):
@@ -248,18 +259,16 @@ class QuadratureProduct:
         self.n = T.N // 3
         self.columns, patch = np.unique(cols, axis=0, return_inverse=True)
         self.patch = patch.ravel()                                   # of each point
-        self.kept = {}
+        self.kept, self.last = {}, None
 
     def _positions(self, U):
-        """Positions in T of the entries (3 U_k + i, 3 U_l + j), (w, w, 3, 3)."""
+        """Positions in T of the entries (3 U_k + i, 3 U_l + j), (w, w, 9),
+        (i, j) = (``SLOT_ROW``, ``SLOT_COL``)."""
         key = U.tobytes()
         pos = self.kept.get(key)
         if pos is None:
-            c = np.arange(3)
-            w = len(U)
-            rows = (3 * U[:, None, None, None] + c[:, None]).repeat(w, 1)
-            cols = np.broadcast_to(3 * U[None, :, None, None] + c, (w, w, 3, 3))
-            pos = self.kept[key] = self.T.positions(rows, cols)
+            pos = self.kept[key] = self.T.positions(3 * U[:, None, None] + SLOT_ROW,
+                                                    3 * U[None, :, None] + SLOT_COL)
         return pos
 
     def _unions(self, groups):
@@ -290,12 +299,25 @@ class QuadratureProduct:
         np.put_along_axis(Cp, at, self.vals[conn].reshape(m, -1), axis=1)
         C = np.einsum("qa,eak->eqk", self.B, Cp.reshape(m, 4, w_max))   # (m, nq, w)
         bounds = np.searchsorted(group, np.arange(len(groups) + 1))
-        pos, val = [], []
+        ends = np.cumsum(9 * width**2)
+        val = np.empty(ends[-1])
+        H6 = H.reshape(m, -1, 9)[:, :, UPPER]                         # H_q symmetric
         for g, (s, t) in enumerate(zip(bounds[:-1], bounds[1:])):
             w = width[g]
             Cg = C[s:t, :, :w].reshape(-1, w)
-            Z = (Cg[:, :, None] * H[s:t].reshape(-1, 1, 9)).reshape(-1, 9 * w)
-            val.append(Cg.T @ Z)                                     # (k, l i j)
-            pos.append(self._positions(columns[first[g]:first[g] + w]))
-        self.T.add_at(np.concatenate([p.ravel() for p in pos]),
-                      np.concatenate([v.ravel() for v in val]))
+            Z = (Cg[:, :, None] * H6[s:t].reshape(-1, 1, 6)).reshape(-1, 6 * w)
+            V = (Cg.T @ Z).reshape(w, w, 6)                           # (k, l, i ≤ j)
+            out = val[ends[g] - 9 * w * w:ends[g]].reshape(w, w, 9)
+            out[:, :, :6] = V
+            out[:, :, 6:] = V[:, :, LOWER].transpose(1, 0, 2)
+        self.T.add_at(self._placed(groups, columns, first, width), val)
+
+    def _placed(self, groups, columns, first, width):
+        """The positions of ``add``'s values for these groups, laid end to
+        end, kept for the last set of groups (a Newton iteration's contact
+        region is often the last one's)."""
+        key = groups.tobytes()
+        if self.last is None or self.last[0] != key:
+            self.last = (key, np.concatenate([
+                self._positions(columns[f:f + w]).ravel() for f, w in zip(first, width)]))
+        return self.last[1]
