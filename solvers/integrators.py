@@ -320,12 +320,14 @@ class NewtonStepper:
             self.saddle, lambda: self.newton_tol / self.kappa, system,
             lambda: self.limited)))
         # the step as a minimum of Φ (class docstring): backtracking on Φ where
-        # a body moves
+        # a body moves; Φ then falls at every iteration, and a solve is let
+        # run to 60 (the landing of a sleeve on an arm takes 25 to 60 and
+        # converges: a halved step would throw them away), else 25
         self.descent = self.minimises and not self.saddle.constrained and \
             getattr(system, "potential", None) is not None
-        set_line_search(self.snes, "bt" if self.descent and self.bodies and barrier.moves
-                        else "basic")
-        self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=25)
+        backtracks = self.descent and self.bodies and barrier.moves
+        set_line_search(self.snes, "bt" if backtracks else "basic")
+        self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=60 if backtracks else 25)
         self.null_space = getattr(system, "null_space", False)
         self.ksp = saddle_ksp(self.saddle, prefix, self.null_space)
         self.snes.setKSP(self.ksp)

@@ -315,17 +315,18 @@ def falling_reduced(bodies=()):
 
 def test_backtracking_is_the_line_search_where_a_body_moves():
     """Backward Euler on a model without constraint rows backtracks on Φ
-    when a body moves, takes full steps otherwise, and a user's
-    -<kind>_snes_linesearch_type has the last word."""
+    when a body moves (and lets Newton run to 60 iterations), takes full
+    steps otherwise (25), and a user's -<kind>_snes_linesearch_type has the
+    last word."""
     from knitfem.contact.colliders import Sphere
     from knitfem.contact.motion import Kinematic, Motion
     from solvers.libpetsc import line_search_type
 
     ball = Sphere(np.array([0.0, -0.02, 0.0]), 0.005)
     turning = Kinematic(ball, Motion([0.0, 1.0], [[0, 0, 0], [0, 0.001, 0]]))
-    kinds = [line_search_type(BackwardEuler(falling_reduced(b), 1e-3).snes)
-             for b in ((), (ball,), (turning,))]
-    assert kinds == ["basic", "basic", "bt"]
+    snes = [BackwardEuler(falling_reduced(b), 1e-3).snes for b in ((), (ball,), (turning,))]
+    assert [line_search_type(s) for s in snes] == ["basic", "basic", "bt"]
+    assert [s.getTolerances()[3] for s in snes] == [25, 25, 60]   # Newton's iterations
     opts = PETSc.Options()
     opts.setValue("reduced_snes_linesearch_type", "l2")
     try:
