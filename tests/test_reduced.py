@@ -296,10 +296,9 @@ def test_sparse_reduced_tangent_is_the_force_derivative():
     assert np.allclose(K @ d, fd, rtol=0, atol=5e-9 * np.abs(fd).max())
 
 
-def landed_sleeve():
-    """A tube in its periodic volume (a stitch's columns wrap round),
-    landed on the turning forearm, the yarns sampled by quadrature: the
-    reduced model and its state."""
+def sleeve_model():
+    """A tube in its periodic volume (a stitch's columns wrap round) round
+    an arm whose forearm turns, the yarns sampled by quadrature."""
     from knitfem.cli.scenes import make_fabric
     from knitfem.knit.pattern import Jersey
     from knitfem.lod.body_contact import ActiveContact
@@ -317,6 +316,13 @@ def landed_sleeve():
     red = ReducedModel(full, emb, SampledElements(full, emb, elements, weights),
                        shell=ShellStretch(full, emb, per_patch=3),
                        contact=ActiveContact(full, emb))
+    return red
+
+
+def landed_sleeve():
+    """``sleeve_model`` landed on the turning forearm: the model and its
+    state."""
+    red = sleeve_model()
     a = red.rest_state()
     red.begin_step(a, 0.05)
     red.move_bodies(0.05, 0.06)
@@ -494,3 +500,26 @@ def test_the_step_potential_is_what_the_residual_derives_from(sampled):
     fd, slope = step_potential_slopes(integ, a, z, seed=8)
     # measured 1.6e-10 (without the friction potential: 0.2)
     assert fd == pytest.approx(slope, rel=1e-8)
+
+
+def test_the_contact_set_follows_each_elements_own_reach():
+    """A body's carry is measured where each element is (a point on the
+    axis of a turn is not carried; one at distance d by 2 d sin(θ/2)); the
+    sleeve falling on the turning forearm, its set formed about each
+    element's own reach and move, misses no element (no step refused) and
+    lands (a yarn within the gap)."""
+    from knitfem.contact.colliders import Barrier, Sphere
+    from knitfem.contact.motion import Kinematic, Motion
+    from solvers.integrators import BackwardEuler
+
+    turn = Kinematic(Sphere(np.zeros(3), 0.01), Motion([0.0, 1.0], [[0, 0, 0]] * 2,
+                                                       rotations=[[0, 0, 0], [0, 0, np.pi / 2]]))
+    b = Barrier((turn,), None, 5e-4, 1.0)
+    x = np.array([[0.0, 0.0, 0.3], [0.02, 0.0, 0.0]])
+    # measured 0 and 3e-18 m
+    assert np.allclose(b.carried(0.0, 1.0, x), [0.0, 0.02 * np.sqrt(2)], rtol=0, atol=1e-15)
+    red = sleeve_model()
+    c = red.contact
+    _, a, _ = run(red, BackwardEuler, 5e-3, 8)
+    assert c.refusals == 0 and c.barrier.min_distance(c._x(red._all(a))) < c.gap
+    assert np.all(c.allowance >= 2 * c.radius) and np.ptp(c.allowance) > 0

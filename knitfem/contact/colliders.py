@@ -500,6 +500,15 @@ class Barrier:
             far = max(far, float(np.abs(x @ (R1 - R0).T + s1 - s0).max(initial=0)))
         return far
 
+    def carried(self, t0, t1, x):
+        """How far each moving body carries its point at x (n, 3) at t0 by
+        t1, |R₁ R₀ᵀ (x − s₀) + s₁ − x|, the most over the bodies (n,)."""
+        far = np.zeros(len(x))
+        for body in filter(moving, self.bodies):
+            (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
+            far = np.maximum(far, np.linalg.norm((x - s0) @ (R1 @ R0.T).T + s1 - x, axis=1))
+        return far
+
     def step_limit(self, x, dx, iterations=30):
         """The largest τ ≤ 1 such that the update τ dx of the yarn points x
         takes no quadrature point below δ = min(δ(x), 0) − ĥ (local): a

@@ -9,17 +9,20 @@ iteration costs what the contact region does, not the yarns.
 Broad phase. A yarn point is a convex combination of its element's four
 control points p_a, so φ(x) ≥ min_a φ(p_a) − d_e, d_e the largest distance
 between two of them (φ is 1-Lipschitz). At the start of a step, from the
-control points x⁰ = Γ̃ α⁰ and the bodies at t₀, an element is active when
+control points x⁰ = Γ̃ α⁰ and the bodies at t₀, an element e is active when
 
-    min_a φ(p_a) − d_e − r < ĥ + m,   m = reach of the bodies over the step + a,
+    min_a φ(p_a) − d_e − r < ĥ + m_e + a_e,
 
-a the allowance for the yarns' own move (twice the last step's largest,
-at least 2 r). The set is formed again when the step's end time changes
-(a retried step) and at every step; after a step, an element left out
-whose bound at the end state comes within the gap refuses the step
-(``missed``), with the allowance doubled, and the step is solved again on
-the larger set; a part of a step (a step halved) forms it about its own
-start too. Friction is lagged on the set at the step's start.
+m_e how far the moving bodies carry their points at the p_a over the step
+and a_e the allowance for the element's own move (twice its largest in
+the last step, at least 2 r): on a sleeve whose wrist swings with the
+forearm, the band of yarn on the upper arm is not widened by the wrist's
+move. The set is formed again when the step's end time changes (a retried
+step) and at every step; after a step, an element left out whose bound at
+the end state comes within the gap refuses the step (``missed``), with
+every allowance doubled, and the step is solved again on the larger set; a
+part of a step (a step halved) forms it about its own start too. Friction
+is lagged on the set at the step's start.
 """
 
 import numpy as np
@@ -107,7 +110,9 @@ class ActiveContact:
         if self.window is None or self.window[1] != t1:
             self.barrier.at(ts)
             X0 = self.G @ alpha0
-            reach = self.barrier.reach(ts, max(t1, ts), X0) if self.barrier.moves else 0.0
+            reach = 0.0
+            if self.barrier.moves:
+                reach = self.barrier.carried(ts, max(t1, ts), X0)[self.el.conn].max(axis=1)
             bound = self._bound(X0)
             if alpha is not None:
                 bound = np.minimum(bound, self._bound(self.G @ alpha))
@@ -123,15 +128,16 @@ class ActiveContact:
     def missed(self, alpha0, alpha1):
         """After a step from α⁰ to α¹: whether an element outside the set may
         have come within the gap (its bound at α¹, the bodies where they
-        are now); the allowance is then doubled and the set formed again at
-        the next ``move``."""
+        are now); the allowances are then doubled and the set formed again
+        at the next ``move``. Else each element's allowance is twice its
+        move in the step, at least 2 r."""
         bound = self._bound(self.G @ alpha1)
         bound[self.active] = np.inf
-        move = np.abs(self.G @ (alpha1 - alpha0)).max(initial=0.0)
+        move = np.linalg.norm(self.G @ (alpha1 - alpha0), axis=1)[self.el.conn].max(axis=1)
         if bound.min(initial=np.inf) >= self.gap:
-            self.allowance = max(2 * self.radius, 2 * move)
+            self.allowance = np.maximum(2 * self.radius, 2 * move)
             return False
-        self.allowance = 2 * max(self.allowance, move)
+        self.allowance = 2 * np.maximum(self.allowance, move)
         self.window, self.refusals = None, self.refusals + 1
         return True
 
