@@ -85,6 +85,7 @@ class ShellStretch:
         self.D = sparse.csr_matrix((vals.ravel().copy(), cols.ravel().copy(),
                                     np.arange(0, cols.size + 1, cols.shape[1])),
                                    shape=(len(cols), vol.size))
+        self.Dt = self.D.T.tocsr()                                   # Dᵀ, by rows
         self.share = W / self.L[self.win]                            # W_q / L_w
         self.cols, self.vals = cols, vals
         # the points over each patch of V share its 32 columns: their rows
@@ -126,7 +127,7 @@ class ShellStretch:
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
         t, f = self._forces(A)
-        out += self.D.T @ (scale * f[:, None] * t)
+        out += self.Dt @ (scale * f[:, None] * t)
 
     def _patch_blocks(self, f):
         """Σ_{q over P} f_q D_qᵀ D_q of every patch P of V, (patches, 32, 32)
