@@ -111,11 +111,11 @@ def main():
         rec = dict(study=STUDY, cases={})
     for name in cases:
         rec["cases"][name] = one_case(name, window, base)
-    for name in list(rec["cases"]):    # each size run in both models
+    for name in list(rec["cases"]):    # each size run now in both models
         size = name[:-len("_full")]
         full, reduced = rec["cases"][name], rec["cases"].get(size + "_reduced")
-        if name.endswith("_full") and reduced and full.get("window_s") == \
-                reduced.get("window_s"):
+        if name.endswith("_full") and {name, size + "_reduced"} <= set(cases) and \
+                full.get("window_s") == reduced.get("window_s"):
             reduced["against_full"] = compare(size, full, reduced, base)
     write_json(PETSc.COMM_WORLD.tompi4py(), STUDY, rec)
     rows = []

@@ -26,8 +26,14 @@ def study(*args, cwd):
 def test_a_case_is_recorded_from_its_own_process(tmp_path):
     """The smallest reduced sleeve for one step: its stages add up to no more
     than the process, its Newton iterations are the summary's, and its
-    volume control points are a third of its unknowns."""
+    volume control points are a third of its unknowns; a full run of the
+    same size recorded before, not run now, is kept and not compared."""
     os.symlink(os.path.join(ROOT, "benchmarks"), tmp_path / "benchmarks")
+    os.mkdir(tmp_path / "results")          # a full run recorded before, its output gone
+    with open(os.path.join(ROOT, "benchmarks", "results", "garment_size.json")) as f:
+        full = dict(json.load(f)["cases"]["sleeve_16x10_full"], window_s=0.01, process_s=1.0)
+    with open(tmp_path / "results" / "garment_size.json", "w") as f:
+        json.dump({"study": "garment_size", "cases": {"sleeve_16x10_full": full}}, f)
     p = study("-bench_cases", "sleeve_16x10_reduced", "-bench_window", "0.01", cwd=tmp_path)
     assert p.returncode == 0, p.stdout + p.stderr
     rec = json.load(open(tmp_path / "results" / "garment_size.json"))
@@ -42,6 +48,7 @@ def test_a_case_is_recorded_from_its_own_process(tmp_path):
     assert case["yarn_control_points"] == summary["yarn_control_points"] == 1280
     assert case["newton_s"] == stages["Time stepping"] / case["newton"]
     assert case["memory"]["peak_rss_mib_max"] > 50
+    assert "against_full" not in case and rec["cases"]["sleeve_16x10_full"]["process_s"] == 1.0
 
 
 def test_an_unknown_case_is_one_line(tmp_path):
