@@ -11,10 +11,12 @@ nonzero pattern, so a sparse factorisation (MUMPS, by the ``reduced_``
 options) keeps its symbolic phase. A part whose entries keep their places
 (the sampled elements' Γ_Sᵀ K_S Γ_S by ``PatchProduct``, the shell's) finds
 their positions in the pattern once (``positions``) and adds its values
-there by one ``bincount`` a call (``add_at``); one whose entries move (the
-contact set's, where the yarns come within the gap) is placed by a binary
-search of its entries' keys (row · 3n + column) among the pattern's
-(``add``).
+there by one ``bincount`` a call (``add_at``); the contact with bodies,
+whose points within the gap change, keeps the positions of each group of
+volume patches it has met (``QuadratureProduct``). A scipy matrix is
+placed by a binary search of its entries' keys (row · 3n + column) among
+the pattern's (``add``: the reference the placed parts are tested
+against).
 """
 
 import numpy as np
