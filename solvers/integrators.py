@@ -104,16 +104,11 @@ def step_convergence(saddle, step_tol, system, limited=lambda: False):
     return test
 
 
-def _MPI_MAX():
+def _mpi_op(name):
+    """mpi4py's reduction ``name`` (MAX, LAND, …), mpi4py imported on use."""
     from mpi4py import MPI
 
-    return MPI.MAX
-
-
-def _MPI_LAND():
-    from mpi4py import MPI
-
-    return MPI.LAND
+    return getattr(MPI, name)
 
 
 class SymplecticEuler:
@@ -192,7 +187,7 @@ class SymplecticEuler:
             s.constraint_residual(self.xe, self.g)
             g = self.g.getArray(readonly=True)
             worst = s.comm.tompi4py().allreduce(np.abs(g).max() if g.size else 0.0,
-                                                op=_MPI_MAX())
+                                                op=_mpi_op("MAX"))
             if worst <= self.tol:
                 break
             if not np.isfinite(worst):
@@ -479,7 +474,7 @@ class NewtonStepper:
         accepted, whose Φ it has just computed."""
         zz = z.getArray(readonly=True)
         same = self.phi_kept is not None and np.array_equal(self.phi_kept[0], zz)
-        if z.getComm().tompi4py().allreduce(same, op=_MPI_LAND()):
+        if z.getComm().tompi4py().allreduce(same, op=_mpi_op("LAND")):
             return self.phi_kept[1]
         phi = self._phi(z)
         self.phi_kept = (zz.copy(), phi)

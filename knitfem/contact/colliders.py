@@ -480,7 +480,7 @@ class Barrier:
         reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
         window = getattr(self, "window", None)
         if window is not None:
-            reach += self.reach(*window, p1.reshape(-1, 3))
+            reach += self.carried(*window, p1.reshape(-1, 3)).max(initial=0.0)
         m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
         deepest = np.inf
         for tau in np.arange(1, m + 1) / m:
@@ -490,15 +490,6 @@ class Barrier:
             phi = np.min([body.phi(pts) for body in self.bodies], axis=0)
             deepest = min(deepest, float(phi.min(initial=np.inf)) - self.radius)
         return deepest
-
-    def reach(self, t0, t1, x):
-        """How far the moving bodies carry their points at x (n, 3) from t0
-        to t1, at most."""
-        far = 0.0
-        for body in filter(moving, self.bodies):
-            (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
-            far = max(far, float(np.abs(x @ (R1 - R0).T + s1 - s0).max(initial=0)))
-        return far
 
     def carried(self, t0, t1, x):
         """How far each moving body carries its point at x (n, 3) at t0 by
