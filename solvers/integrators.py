@@ -29,7 +29,7 @@ from .halting import halt_if_requested, requested
 from .libpetsc import line_search, set_line_search
 from .progress import note
 from .reasons import reason_name
-from .saddle import (SaddlePoint, SolverFailure, saddle_ksp,
+from .saddle import (SaddlePoint, SolverFailure, negative_pivots, saddle_ksp,
                      solve_saddle)
 from .stepping import PositionHistory, StepControl
 
@@ -42,6 +42,8 @@ EV_FACTOR = PETSc.Log.Event("knitFactor")
 # (PETSc's own events of a solve that fails inside MUMPS are never ended, so
 # they miss its time)
 EV_NEWTON = PETSc.Log.Event("knitNewtonSolve")
+EV_INERTIA = PETSc.Log.Event("knitInertia")       # a factorisation for its pivots
+EV_CONVEX = PETSc.Log.Event("knitConvexTangent")  # a Newton matrix convexified
 EV_CONTROL = PETSc.Log.Event("knitStepControl")
 # a step's lagged quantities and, where the yarn contact's pairs moved, its
 # tangent pattern made again (``begin_step``, ``relayout``)
@@ -278,6 +280,24 @@ class NewtonStepper:
     against 2 707). A backtracking search that finds no decrease (Φ at its
     round-off near the minimum) hands the solve to full steps from where it
     stopped (``_in_full_steps``). ``-<kind>_snes_linesearch_type`` chooses.
+
+    A convex Newton matrix where it backtracks. Backtracking needs a descent
+    direction, which an indefinite matrix does not give. A system whose
+    tangent can turn indefinite offers a convex one (``convex_tangent``,
+    ``stiffness(..., convex=True)``: the reduced model's shell stretch
+    without its compressed stitches' negative stiffness). At each iteration
+    of a step until the first whose exact matrix is positive definite, that
+    matrix is factorised and, where MUMPS's LDLᵀ finds negative pivots,
+    replaced by the convex one (the events knitInertia and knitConvexTangent
+    of ``-log_view`` count them); from then on
+    it is the exact one, so Newton converges as fast as before near the
+    solution. On a sleeve whose forearm turns, the step's start carried with
+    the arm compresses the stitches at the elbow and the exact matrix has
+    generalised eigenvalues down to −3e5 M: its first updates moved the
+    yarns by several radii, against the filter, for about five iterations a
+    step. The 60×120 sleeve's whole bend takes about half the iterations.
+    Where full steps are taken the exact matrix is kept (the 12×12 drape
+    converged in 1 315 iterations with this, 777 without).
     """
 
     order = 1
@@ -322,6 +342,9 @@ class NewtonStepper:
             getattr(system, "potential", None) is not None
         backtracks = self.descent and self.bodies and barrier.moves
         set_line_search(self.snes, "bt" if backtracks else "basic")
+        # where it backtracks, Newton's matrices are the system's convex
+        # tangent until the first definite one of a step (class docstring)
+        self.convexify = backtracks and getattr(system, "convex_tangent", False)
         self.snes.setTolerances(rtol=1e-7, atol=1e-50, max_it=60 if backtracks else 25)
         self.null_space = getattr(system, "null_space", False)
         self.ksp = saddle_ksp(self.saddle, prefix, self.null_space)
@@ -511,13 +534,25 @@ class NewtonStepper:
             y.scale(tau)
 
     def _jacobian(self, snes, z, J, P):
-        s = self.system
         self._unpack(z)
-        sw = self.sigma * self.w
-        K = s.stiffness(self.xf, self.mu if self.saddle.constrained else None,
-                        1.0 / sw, xref=self.xref if self.mip else None)
+        self._newton_matrix()
+        if self.convexify and not self.definite:
+            with EV_INERTIA:
+                negative = negative_pivots(self.ksp)
+            self.definite = not negative
+            if negative:
+                with EV_CONVEX:
+                    self._newton_matrix(convex=True)
         if self.mip:
             self.xf.copy(self.xref)
+
+    def _newton_matrix(self, **convex):
+        """A (class docstring) at the unpacked state, the system's tangent
+        ``convex`` where asked (``convexify``)."""
+        s = self.system
+        sw = self.sigma * self.w
+        K = s.stiffness(self.xf, self.mu if self.saddle.constrained else None,
+                        1.0 / sw, xref=self.xref if self.mip else None, **convex)
         K.copy(self.A, PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         self.A.scale(sw * self.kappa)
         self.A.axpy(1.0 + sw * s.material.damping, self.MA,
@@ -565,6 +600,7 @@ class NewtonStepper:
     def _newton(self, h, stats):
         """One Newton solve of the step h from the predictor."""
         self.phi_kept = None                   # Φ changes with the step
+        self.definite = False                  # no definite Newton matrix yet
         with EV_NEWTON:
             self.predict(h, self.tmp)
             if self.yarn_contact:

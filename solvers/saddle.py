@@ -508,6 +508,21 @@ def _factor(ksp):
     return pc, pc.getFactorMatrix() if solver == "mumps" else None
 
 
+def negative_pivots(ksp):
+    """The number of negative pivots (eigenvalues) of ksp's operator,
+    factorised now by MUMPS's LDLᵀ (INFOG(12); a solve with the operator
+    unchanged reuses the factors); None where the KSP does not factorise it
+    so (LU, a Krylov method) or the factorisation failed (the solve then
+    reports it)."""
+    pc = ksp.getPC()
+    if pc.getType() != "cholesky" or pc.getFactorSolverType() != "mumps":
+        return None
+    ksp.setOperators(*ksp.getOperators())       # set up again, not skipped
+    ksp.setUp()
+    F = pc.getFactorMatrix()
+    return F.getMumpsInfog(12) if F.getMumpsInfog(1) >= 0 else None
+
+
 def refactor(ksp, icntl14):
     """Drop the failed MUMPS factor (it would skip its numeric phase after any
     error) for a new one with ICNTL(14) = ``icntl14`` (also in the options

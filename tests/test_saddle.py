@@ -8,8 +8,8 @@ from petsc4py import PETSc
 from helpers import to_scipy
 from knitfem.model.full import FullModel, Material
 from knitfem.knit.pattern import Jersey, jersey_fabric
-from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, saddle_ksp,
-                            solve_saddle)
+from solvers.saddle import (WORKSPACE_RAISED, SaddlePoint, SolverFailure, negative_pivots,
+                            saddle_ksp, solve_saddle)
 
 COMM = PETSc.COMM_WORLD
 PETSc.Log.begin()                 # event counts
@@ -272,3 +272,24 @@ def test_course_schwarz_solves_K(model, options, courses, overlap):
     assert z2.norm() <= 1e-10 * z1.norm()  # measured 2.4e-12, 2 ranks 3.0e-11
     for s in (direct, schwarz):
         s.destroy()
+
+
+@pytest.mark.parametrize("pc_type", ["cholesky", "lu"])
+def test_negative_pivots_are_the_negative_eigenvalues(pc_type):
+    """MUMPS's LDLᵀ counts the negative eigenvalues of a symmetric matrix
+    (a rotated diag(−3, −1, 2, 4, 5)); an LU does not tell."""
+    Q, _ = np.linalg.qr(np.random.default_rng(0).standard_normal((5, 5)))
+    S = Q @ np.diag([-3.0, -1.0, 2.0, 4.0, 5.0]) @ Q.T
+    A = PETSc.Mat().createAIJ((5, 5), nnz=5, comm=PETSc.COMM_SELF)
+    A.setValues(range(5), range(5), S.ravel())
+    A.assemble()
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    ksp.getPC().setType(pc_type)
+    ksp.getPC().setFactorSolverType("mumps")
+    assert negative_pivots(ksp) == (2 if pc_type == "cholesky" else None)
+    b, x = A.createVecs()
+    b.set(1.0)
+    ksp.solve(b, x)                                  # the factors serve the solve
+    assert np.allclose(S @ x.getArray(), 1.0)

@@ -575,21 +575,31 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         lo, hi = Q.getOwnershipRange()
         Q.getArray()[:] += self._summed(f).ravel()[lo:hi]
 
-    def stiffness(self, alpha, mu=None, weight=1.0, xref=None):
+    @property
+    def convex_tangent(self):
+        """Whether ``stiffness(..., convex=True)`` differs from the exact
+        tangent: with the shell stretch, whose compressed stitches it drops
+        (``ShellStretch.add_tangent``)."""
+        return self.shell is not None
+
+    def stiffness(self, alpha, mu=None, weight=1.0, xref=None, convex=False):
         """Γᵀ K(Γα) Γ: sampled, dense (``GroupedTangent``) or by PtAP,
         reusing the symbolic product (linear constraints: no curvature, μ
-        unused); ``xref`` the MIP reference state (``FullModel.stiffness``)."""
+        unused); ``xref`` the MIP reference state (``FullModel.stiffness``);
+        ``convex``: the shell stretch's compressed stitches' geometric
+        stiffness left out (``convex_tangent``)."""
         if self.sampled is not None:
             ref = None if xref is None else self._all(xref).copy()
             A = self._all(alpha)
             if self.sparse is not None:
                 return self._sparse_stiffness(
-                    A, lambda T: self._yarns(T).add(self.sampled.hessian_values(A, ref)))
+                    A, lambda T: self._yarns(T).add(self.sampled.hessian_values(A, ref)),
+                    convex)
 
             def reduce(R):
                 self.sampled.tangent(A, R, ref)
                 if self.shell is not None:
-                    self.shell.add_hessian(A, R)
+                    self.shell.add_hessian(A, R, convex)
                 if self.contact is not None:
                     self.contact.add_hessian(A, self.R_values)
             return self._dense_stiffness(reduce)
@@ -600,12 +610,13 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.sparse is not None:         # the shell's, on a large volume
                 N = 3 * self.embedding.volume.size
                 R = self.dense(values, np.zeros((N, N)))
-                return self._sparse_stiffness(self._all(alpha), lambda T: T.add_dense(R))
+                return self._sparse_stiffness(self._all(alpha), lambda T: T.add_dense(R),
+                                              convex)
 
             def reduce(R):
                 self.dense(values, R)
                 if self.shell is not None:
-                    self.shell.add_hessian(self._all(alpha), R)
+                    self.shell.add_hessian(self._all(alpha), R, convex)
             return self._dense_stiffness(reduce)
         K = self.full.stiffness(x, xref=ref)
         with EV_PTAP:
@@ -616,16 +627,16 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 K.PtAP(self.embedding.Gamma, self.K)
         return self.K
 
-    def _sparse_stiffness(self, A, yarns):
+    def _sparse_stiffness(self, A, yarns, convex=False):
         """Γᵀ K Γ on the fixed sparse pattern (``SparseTangent``): the yarn
-        elements' part added by ``yarns(T)``, the shell's and the contact
-        set's added, every rank's summed."""
+        elements' part added by ``yarns(T)``, the shell's (``convex`` as in
+        ``stiffness``) and the contact set's added, every rank's summed."""
         T = self.sparse
         with EV_PTAP:
             T.zero()
             yarns(T)
             if self.shell is not None:
-                self.shell.add_tangent(A, T)
+                self.shell.add_tangent(A, T, convex)
             if self.contact is not None:
                 self.contact.add_hessian(A, T)
             self.K = T.assemble()

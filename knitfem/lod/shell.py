@@ -137,17 +137,25 @@ class ShellStretch:
         fs[p, slot] = f[order]
         return np.matmul(self.stack_t, self.stack * fs[..., None])
 
-    def add_tangent(self, A, T):
+    def add_tangent(self, A, T, convex=False):
         """T's values (a ``SparseTangent``) += ∂²E_s/∂α² (``hessian_parts``),
         each part placed by positions found at the first call for T: the
         patches' blocks ⊗ I₃, and Jᵀ diag(EA ξ L) J a group of windows at a
         time (those whose first point lies over a patch), J_g (windows ×
         3 U_g, U_g the columns they reach) formed by a sparse map of the
-        points' s_q t_q, s_q = W_q/(L_w L_q²), and J_gᵀ diag J_g by one GEMM."""
+        points' s_q t_q, s_q = W_q/(L_w L_q²), and J_gᵀ diag J_g by one GEMM.
+
+        ``convex``: the compressed stitches' geometric stiffness dropped,
+        f_q replaced by max(f_q, 0) in the first sum. Both sums are then
+        positive semi-definite: a stitch whose yarn is compressed (ē_w < 0)
+        softens by EA |ē_w| D_qᵀ D_q in every direction, which on a sleeve
+        crumpled at a bending elbow makes the exact tangent indefinite."""
         if self.placed is None or self.placed[0] is not T:
             self.placed = (T, self._placement(T))
         _, (pos, Jmap, scale, jpos) = self.placed
         t, f = self._forces(A)
+        if convex:
+            f = np.maximum(f, 0.0)
         blocks = self._patch_blocks(f)
         T.add_at(pos, np.broadcast_to(blocks[..., None], pos.shape))
         ng, nw = scale.shape
@@ -241,14 +249,14 @@ class ShellStretch:
         reach.data[:] = 1.0
         return reach.T @ reach
 
-    def add_hessian(self, A, out):
+    def add_hessian(self, A, out, convex=False):
         """out (3n × 3n, dense, C-ordered) += ∂²E_s/∂α² (``add_tangent`` on its
-        entries, laid out at the first call for ``out``)."""
+        entries, laid out at the first call for ``out``; ``convex`` as there)."""
         from knitfem.lod.sparse_tangent import DenseValues
 
         if self.dense is None or self.dense.R is not out:
             self.dense = DenseValues(out)
-        self.add_tangent(A, self.dense)
+        self.add_tangent(A, self.dense, convex)
 
 
 def patch_of(cols, win, nwin):
