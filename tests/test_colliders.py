@@ -380,6 +380,49 @@ def test_an_update_through_a_body_stops_at_its_surface(name):
     model.destroy()
 
 
+def test_the_swept_depth_samples_only_the_paths_that_can_reach_its_floor():
+    """``swept_depth`` below −r is the deepest point of every path sampled
+    (a knit swept through a sphere, parts of it far from it), and where no
+    path can reach −r (the knit 10 r away moving 5 r) it samples none."""
+    body = Sphere(np.zeros(3), 0.004)
+    fab = jersey(2, 2)
+    fab.bodies = (body,)
+    model = FullModel(SELF, fab, Material())
+    b, r = model.barrier, model.fabric.radius
+    P = model.yarn_points(model.rest_state()).copy()
+    P += np.array([0.0, 0.012, 0.0]) - P.mean(0)          # 12 mm above the centre
+    d = np.zeros_like(P)
+    d[:, 1] = -0.024                                       # through it
+    every = b.swept_depth(P, P + d, floor=np.inf)
+    assert every < -r and b.swept_depth(P, P + d) == every
+    P += np.array([0.0, 0.0, 0.004 + 10 * r + np.ptp(P[:, 2])]) - [0, 0, P[:, 2].min()]
+    d[:, 1] = -5 * r
+    assert b.min_distance(P) > 10 * r and b.min_distance(P + d) > 10 * r
+    assert b.swept_depth(P, P + d) == np.inf > b.swept_depth(P, P + d, floor=np.inf) > 0
+    model.destroy()
+
+
+def test_a_body_that_moves_through_a_resting_knit_is_seen_along_its_path():
+    """A ball that passes through a knit at rest within a step (from 12 mm
+    behind it to 12 mm before) leaves both ends clear; the swept depth,
+    sampled along the ball's motion relative to the knit, goes below −r."""
+    from knitfem.contact.motion import Kinematic, Motion
+
+    ball = Kinematic(Sphere(np.array([0.0, 0.0, -0.012]), 0.004),
+                     Motion([0.0, 0.01], [[0, 0, 0], [0, 0, 0.024]]))
+    fab = jersey(2, 2)
+    fab.bodies = (ball,)
+    model = FullModel(SELF, fab, Material())
+    b, r = model.barrier, model.fabric.radius
+    P = model.yarn_points(model.rest_state()).copy()
+    P -= P.mean(0)
+    b.lag(P, 0.0)
+    b.step_to(0.0, 0.01)
+    assert b.min_distance(P) > 10 * r
+    assert b.swept_depth(P, P) < -r
+    model.destroy()
+
+
 def test_a_knit_in_a_crease_feels_each_body_barrier_and_friction():
     """Two planes meeting in a crease under a jersey, its lowest points within
     the gap of both: E_c + D is the sum of each body's own (the barrier of

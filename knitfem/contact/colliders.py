@@ -470,25 +470,46 @@ class Barrier:
         B = self.el.B
         return e, np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
 
-    def swept_depth(self, x0, x1, resolution=0.5):
+    def swept_depth(self, x0, x1, floor=None, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
-        from x0 to x1 (local; +inf without elements), each path sampled
-        every ``resolution`` × r at least, the moving bodies along their
-        own paths over the step (``step_to``): a step that carried a yarn
-        point through a body shows a depth there even when it ends outside."""
-        p0, p1 = self.el.points(x0), self.el.points(x1)
-        reach = np.abs(p1 - p0).max(initial=0.0) if p0.size else 0.0
+        from x0 to x1 that can go below ``floor`` (−r by default), the
+        moving bodies along their own paths over the step (``step_to``): a
+        step that carried a yarn point through a body shows a depth there
+        even when it ends outside. Local; +inf where no path can reach the
+        floor.
+
+        Body by body: a path is looked at only if its end's δ_b less its
+        length and twice how far the body carries its ends is below the
+        floor (φ is 1-Lipschitz: the others stay above it), and it is
+        sampled every ``resolution`` × r at least of its motion relative to
+        the body, |g⁻¹(x1) − x0| (g the body's motion over the step): a
+        sleeve carried by a turning forearm barely moves on it, however far
+        it swings."""
+        floor = -self.radius if floor is None else floor
+        p0 = self.el.points(x0).reshape(-1, 3)
+        p1 = self.el.points(x1).reshape(-1, 3)
+        each = self._distances(x1)[0].reshape(len(self.bodies), -1)
         window = getattr(self, "window", None)
-        if window is not None:
-            reach += self.carried(*window, p1.reshape(-1, 3)).max(initial=0.0)
-        m = int(min(64, max(1, np.ceil(reach / (resolution * self.radius)))))
         deepest = np.inf
-        for tau in np.arange(1, m + 1) / m:
-            if window is not None:
-                self.at(window[0] + tau * (window[1] - window[0]))
-            pts = (p0 + tau * (p1 - p0)).reshape(-1, 3)
-            phi = np.min([body.phi(pts) for body in self.bodies], axis=0)
-            deepest = min(deepest, float(phi.min(initial=np.inf)) - self.radius)
+        for body, delta in zip(self.bodies, each):
+            rel, reach = p1 - p0, np.linalg.norm(p1 - p0, axis=1)
+            if window is not None and moving(body):
+                (R0, s0), (R1, s1) = body.motion.pose(window[0]), body.motion.pose(window[1])
+                R = R1 @ R0.T
+                rel = (p1 - s1) @ R + s0 - p0                      # g⁻¹(x1) − x0
+                reach = reach + 2 * np.maximum(
+                    np.linalg.norm((p0 - s0) @ R.T + s1 - p0, axis=1),
+                    np.linalg.norm((p1 - s0) @ R.T + s1 - p1, axis=1))
+            near = np.flatnonzero(delta - reach < floor)
+            if not len(near):
+                continue
+            a, d = p0[near], p1[near] - p0[near]
+            far = np.linalg.norm(rel[near], axis=1).max()
+            m = int(min(64, max(1, np.ceil(far / (resolution * self.radius)))))
+            for tau in np.arange(1, m + 1) / m:
+                if window is not None and moving(body):
+                    body.at(window[0] + tau * (window[1] - window[0]))
+                deepest = min(deepest, float(body.phi(a + tau * d).min()) - self.radius)
         return deepest
 
     def carried(self, t0, t1, x):
