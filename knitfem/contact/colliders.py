@@ -490,16 +490,16 @@ class Barrier:
         p1 = self.el.points(x1).reshape(-1, 3)
         each = self._distances(x1)[0].reshape(len(self.bodies), -1)
         window = getattr(self, "window", None)
+        length = np.linalg.norm(p1 - p0, axis=1)
         deepest = np.inf
         for body, delta in zip(self.bodies, each):
-            rel, reach = p1 - p0, np.linalg.norm(p1 - p0, axis=1)
+            rel, reach = p1 - p0, length
             if window is not None and moving(body):
-                (R0, s0), (R1, s1) = body.motion.pose(window[0]), body.motion.pose(window[1])
-                R = R1 @ R0.T
-                rel = (p1 - s1) @ R + s0 - p0                      # g⁻¹(x1) − x0
-                reach = reach + 2 * np.maximum(
-                    np.linalg.norm((p0 - s0) @ R.T + s1 - p0, axis=1),
-                    np.linalg.norm((p1 - s0) @ R.T + s1 - p1, axis=1))
+                R, s = body.motion.between(*window)
+                rel = (p1 - s) @ R - p0                            # g⁻¹(x1) − x0
+                reach = length + 2 * np.maximum(
+                    np.linalg.norm(p0 @ R.T + s - p0, axis=1),
+                    np.linalg.norm(p1 @ R.T + s - p1, axis=1))
             near = np.flatnonzero(delta - reach < floor)
             if not len(near):
                 continue
@@ -514,11 +514,12 @@ class Barrier:
 
     def carried(self, t0, t1, x):
         """How far each moving body carries its point at x (n, 3) at t0 by
-        t1, |R₁ R₀ᵀ (x − s₀) + s₁ − x|, the most over the bodies (n,)."""
+        t1, |R x + s − x| (``Motion.between``), the most over the bodies
+        (n,)."""
         far = np.zeros(len(x))
         for body in filter(moving, self.bodies):
-            (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
-            far = np.maximum(far, np.linalg.norm((x - s0) @ (R1 @ R0.T).T + s1 - x, axis=1))
+            R, s = body.motion.between(t0, t1)
+            far = np.maximum(far, np.linalg.norm(x @ R.T + s - x, axis=1))
         return far
 
     def step_limit(self, x, dx, iterations=30):

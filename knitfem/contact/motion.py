@@ -106,6 +106,13 @@ class Motion:
         c = self._hermite(t, self.c, self.dc)
         return R, self.pivot + c - R @ self.pivot
 
+    def between(self, t0, t1):
+        """(R, s) with x(t1) = R x(t0) + s for a body point: R₁ R₀ᵀ and
+        s₁ − R₁ R₀ᵀ s₀."""
+        (R0, s0), (R1, s1) = self.pose(t0), self.pose(t1)
+        R = R1 @ R0.T
+        return R, s1 - R @ s0
+
 
 @dataclass
 class Kinematic:
@@ -183,9 +190,9 @@ def carried(bodies, x, t0, t1, length, reach, least=float):
         if not moving(body):
             phi[b] = body.phi(x)
             continue
-        (R0, s0), (R1, s1) = body.motion.pose(t0), body.motion.pose(t1)
-        phi[b] = body.rest.moved(R0, s0).phi(x)
-        moves.append((b, (x - s0) @ (R1 @ R0.T).T + s1 - x))
+        phi[b] = body.body_at(t0).phi(x)
+        R, s = body.motion.between(t0, t1)
+        moves.append((b, x @ R.T + s - x))
     near = phi.min(axis=0)
     w = np.exp(-(phi - near) / length)
     nearest = least(float(near.min(initial=np.inf)))
