@@ -451,6 +451,34 @@ def test_contact_hessian_on_the_points_in_the_gap_is_the_whole_set_s():
     assert np.allclose(new, ref, rtol=0, atol=8e-16 * np.abs(ref).max())
 
 
+def test_the_narrow_phase_keeps_every_element_that_can_reach_the_gap():
+    """After α moves from the reference by up to 2 r, the elements the
+    narrow phase keeps (ℓ_e − ρ_e < ĥ) include every one with a point
+    within the gap, leave out some of the set, and the barrier's energy,
+    forces and step filter on them are the whole set's."""
+    red, a = landed_sleeve()
+    c = red.contact
+    A = red._all(a).copy()
+    c.near(A)                                                     # the reference
+    r = red.fabric.radius
+    A1 = A + 2 * r * np.random.default_rng(3).uniform(-1, 1, A.shape) / np.sqrt(3)
+    near = c.near(A1)
+    x = c.Ga @ A1
+    delta = c.barrier.surface_distance(x)[0]
+    within = np.flatnonzero((delta < c.gap).any(axis=1))
+    assert len(within) > 0 and np.isin(within, near).all()
+    assert len(near) < len(c.active)
+    g_all, g_near = np.zeros_like(x), np.zeros_like(x)
+    c.barrier.add_gradient(x, g_all)
+    c.barrier.add_gradient(x, g_near, elements=near)
+    # measured 0 and 0: the elements left out add exact zeros
+    assert np.isclose(c.barrier.energy(x, near), c.barrier.energy(x), rtol=1e-14, atol=0)
+    assert np.allclose(g_near, g_all, rtol=0, atol=1e-14 * np.abs(g_all).max())
+    dx = c.Ga @ (A - A1)
+    assert c.barrier.step_limit(x, dx, elements=c.near(A1, A - A1)) == \
+        c.barrier.step_limit(x, dx)
+
+
 def test_shell_on_sampled_stitches_weighs_what_it_stands_for():
     """Every patch's stitches sampled: exact; a few a patch: weights summing
     to the stitch count, and the rest and rigid motions still free."""

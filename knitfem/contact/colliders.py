@@ -77,6 +77,30 @@ about 10, as at 0.3 r and 1 r; a halved step whose ε halved too cycled
 again."""
 
 
+def quadrature_points(B, x, conn):
+    """x_eq = Σ_a B_qa x_{conn[e, a]} of the elements of control points
+    ``conn`` (m, 4), (m, nq, 3): one gather and one product (numpy's einsum
+    takes six times as long)."""
+    X = np.take(np.asarray(x), conn.T, axis=0).reshape(conn.shape[1], -1)
+    return np.ascontiguousarray((B @ X).reshape(len(B), len(conn), 3).transpose(1, 0, 2))
+
+
+def to_control_points(B, v):
+    """Σ_q B_qa v_eqi of point values v (m, nq, 3): their share at each
+    element's control points, (m, 4, 3) (``quadrature_points``' transpose)."""
+    m, nq, _ = v.shape
+    V = np.ascontiguousarray(v.transpose(1, 0, 2)).reshape(nq, -1)
+    return np.ascontiguousarray((B.T @ V).reshape(B.shape[1], m, 3).transpose(1, 0, 2))
+
+
+def _same(a, b):
+    """Whether two element selections (index arrays, or None for all) are
+    the same."""
+    if a is None or b is None:
+        return a is b
+    return np.array_equal(a, b)
+
+
 def _unit(d):
     """(d/|d|, |d|) row-wise."""
     r = np.linalg.norm(d, axis=-1)
@@ -354,7 +378,7 @@ class Barrier:
     def _slip(self, x):
         """(elements, μλ, T, u, y = |u|) of the lagged points at x."""
         e, mul, T, x0 = self.lagged
-        xq = np.einsum("qa,eai->eqi", self.el.B, np.asarray(x)[self.el.conn[e]])
+        xq = quadrature_points(self.el.B, x, self.el.conn[e])
         u = np.einsum("eqij,eqj->eqi", T, xq - x0)
         return e, mul, T, u, np.linalg.norm(u, axis=-1)
 
@@ -380,24 +404,32 @@ class Barrier:
                                        + f1_y[..., None, None] * (T - uu))
         return e, (mul * f1_y)[..., None] * u, hess
 
-    def _distances(self, x):
-        """(δ_b = φ_b − r of every body b (nb, ne, nq), δ = min_b δ_b (ne, nq),
-        the nearest body (ne, nq), the points x_eq (ne, nq, 3)), computed
-        once a state: the forces, the tangent and the step filter at the
-        same x, the bodies where they were (the moving ones' times), share
-        them."""
+    def _points(self, x, elements=None):
+        """x_eq of the elements ``elements`` (all: None), (m, nq, 3)."""
+        if elements is None:
+            return self.el.points(x)
+        return quadrature_points(self.el.B, x, self.el.conn[elements])
+
+    def _distances(self, x, elements=None):
+        """(δ_b = φ_b − r of every body b (nb, m, nq), δ = min_b δ_b (m, nq),
+        the nearest body (m, nq), the points x_eq (m, nq, 3)) of the
+        elements ``elements`` (all: None), computed once a state: the
+        forces, the tangent and the step filter at the same x, the bodies
+        where they were (the moving ones' times), share them. An element
+        left out must be known to lie beyond the gap."""
         x = np.asarray(x)
         poses = tuple(body.time for body in self.bodies if moving(body))
         kept = self.distance_at
-        if kept is None or kept[1] != poses or not np.array_equal(kept[0], x):
-            pts = self.el.points(x)
+        if (kept is None or kept[1] != poses or not np.array_equal(kept[0], x)
+                or not _same(kept[2], elements)):
+            pts = self._points(x, elements)
             each = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
             each = each.reshape((len(self.bodies),) + pts.shape[:2]) - self.radius
             nearest = np.argmin(each, axis=0)
             kept = self.distance_at = (
-                x.copy(), poses,
+                x.copy(), poses, None if elements is None else elements.copy(),
                 (each, np.take_along_axis(each, nearest[None], 0)[0], nearest, pts))
-        return kept[2]
+        return kept[3]
 
     def surface_distance(self, x):
         """δ = min over bodies of φ − r at every quadrature point, which body
@@ -405,38 +437,42 @@ class Barrier:
         x_eq (ne, nq, 3))."""
         return self._distances(x)[1:]
 
-    def _active(self, x):
-        """The elements with a point within the gap of a body, a row for each
-        such element and body, and f', f'' (weighted by w_q |X'|) there:
-        (elements, δ_b, n_b, ∇²φ_b, w f', w f'', body b), an element within
-        the gap of two bodies listed for each."""
-        each, _, _, pts = self._distances(x)
+    def _active(self, x, elements=None):
+        """The elements with a point within the gap of a body (among
+        ``elements``; all: None), a row for each such element and body, and
+        f', f'' (weighted by w_q |X'|) there: (elements, δ_b, n_b, ∇²φ_b, w f',
+        w f'', body b), an element within the gap of two bodies listed for
+        each."""
+        each, _, _, pts = self._distances(x, elements)
         parts = []
         for b, body in enumerate(self.bodies):
-            e = np.flatnonzero((each[b] < self.gap).any(axis=1))
-            _, n, H = body.distance(pts[e].reshape(-1, 3))
-            shape = (len(e),) + pts.shape[1:]
-            s = np.maximum(self.gap - each[b, e], 0.0)
+            m = np.flatnonzero((each[b] < self.gap).any(axis=1))
+            _, n, H = body.distance(pts[m].reshape(-1, 3))
+            shape = (len(m),) + pts.shape[1:]
+            s = np.maximum(self.gap - each[b, m], 0.0)
+            e = m if elements is None else elements[m]
             W = self.el.W[e]
-            parts.append((e, each[b, e], n.reshape(shape), H.reshape(shape + (3,)),
+            parts.append((e, each[b, m], n.reshape(shape), H.reshape(shape + (3,)),
                           -W * self.kappa * s**2, 2 * W * self.kappa * s,
                           np.full(s.shape, b)))
         return tuple(np.concatenate(p) for p in zip(*parts))
 
-    def energy(self, x):
-        """E_c (local elements)."""
-        s = np.maximum(self.gap - self._distances(x)[0], 0.0)
-        return float(np.sum(self.el.W * self.kappa / 3 * s**3))
+    def energy(self, x, elements=None):
+        """E_c (local elements; those of ``elements``, the others known to lie
+        beyond the gap: ``_distances``)."""
+        s = np.maximum(self.gap - self._distances(x, elements)[0], 0.0)
+        W = self.el.W if elements is None else self.el.W[elements]
+        return float(np.sum(W * self.kappa / 3 * s**3))
 
-    def add_gradient(self, x, out, scale=1.0):
-        """out (ncp, 3) += scale ∂(E_c + D)/∂ε (D: friction, when lagged)."""
-        e, _, n, _, d1, _, _ = self._active(x)
-        g = np.einsum("eq,qa,eqi->eai", d1, self.el.B, n)
+    def add_gradient(self, x, out, scale=1.0, elements=None):
+        """out (ncp, 3) += scale ∂(E_c + D)/∂ε (D: friction, when lagged);
+        the barrier on ``elements`` (``energy``)."""
+        e, _, n, _, d1, _, _ = self._active(x, elements)
+        g = to_control_points(self.el.B, d1[..., None] * n)
         np.add.at(out, self.el.conn[e], scale * g)
         if self.lagged is not None:
             e, gq, _ = self._friction_terms(x)
-            g = np.einsum("qa,eqi->eai", self.el.B, gq)
-            np.add.at(out, self.el.conn[e], scale * g)
+            np.add.at(out, self.el.conn[e], scale * to_control_points(self.el.B, gq))
 
     def add_hessian(self, x, slot, values):
         """values[slot[e]] += ∂²(E_c + D)/∂p∂p of the elements within the gap
@@ -447,16 +483,16 @@ class Barrier:
         mine = where >= 0                              # rows of this rank
         values += np.bincount(where[mine], blocks.ravel()[mine], minlength=len(values))
 
-    def quadrature_hessian(self, x):
+    def quadrature_hessian(self, x, elements=None):
         """∂²(E_c + D)/∂x_q² at the quadrature points,
 
             H_q = w f''(δ) n nᵀ + w f'(δ) ∇²φ          (barrier),
             H_q = μλ (f₁' û ûᵀ + f₁/y (T − û ûᵀ))      (friction, lagged),
 
-        of the elements with a point within the gap and of the lagged ones:
-        (elements (m,), H (m, nq, 3, 3)), an element lagged and within the
-        gap listed twice."""
-        e, _, n, H, d1, d2, _ = self._active(x)
+        of the elements with a point within the gap (among ``elements``:
+        ``energy``) and of the lagged ones: (elements (m,), H (m, nq, 3, 3)),
+        an element lagged and within the gap listed twice."""
+        e, _, n, H, d1, d2, _ = self._active(x, elements)
         parts = [(e, d2[..., None, None] * n[..., :, None] * n[..., None, :]
                   + d1[..., None, None] * H)]
         if self.lagged is not None:
@@ -468,7 +504,8 @@ class Barrier:
         (``quadrature_hessian``): (elements (m,), blocks (m, 12, 12))."""
         e, Hq = self.quadrature_hessian(x)
         B = self.el.B
-        return e, np.einsum("qa,qb,eqij->eaibj", B, B, Hq).reshape(-1, 12, 12)
+        return e, np.einsum("qa,qb,eqij->eaibj", B, B, Hq,
+                            optimize=True).reshape(-1, 12, 12)
 
     def swept_depth(self, x0, x1, floor=None, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
@@ -522,7 +559,7 @@ class Barrier:
             far = np.maximum(far, np.linalg.norm(x @ R.T + s - x, axis=1))
         return far
 
-    def step_limit(self, x, dx, iterations=30):
+    def step_limit(self, x, dx, iterations=30, elements=None):
         """The largest τ ≤ 1 such that the update τ dx of the yarn points x
         takes no quadrature point below δ = min(δ(x), 0) − ĥ (local): a
         Newton update stops about where a yarn surface meets a body, in
@@ -535,9 +572,11 @@ class Barrier:
         (``lowest``: also for a path that passes through a body and ends
         beyond it), and its first crossing is found by bisection on
         [0, τ*]. Only paths that can reach the bound are looked at: φ is
-        1-Lipschitz, so φ(p + τq) ≥ φ(p) − |q|."""
-        each, start, _, p = self._distances(x)
-        p, q = p.reshape(-1, 3), self.el.points(dx).reshape(-1, 3)
+        1-Lipschitz, so φ(p + τq) ≥ φ(p) − |q|. Only the paths of
+        ``elements`` (all: None) are looked at: the others must be known not
+        to reach the gap."""
+        each, start, _, p = self._distances(x, elements)
+        p, q = p.reshape(-1, 3), self._points(dx, elements).reshape(-1, 3)
         bound = np.minimum(start.ravel(), 0.0) - self.gap + self.radius   # on φ
         reach = np.linalg.norm(q, axis=1)
         tau = 1.0

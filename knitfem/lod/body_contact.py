@@ -23,13 +23,27 @@ the end state comes within the gap refuses the step (``missed``), with
 every allowance doubled, and the step is solved again on the larger set; a
 part of a step (a step halved) forms it about its own start too. Friction
 is lagged on the set at the step's start.
+
+Narrow phase. Within a step, the barrier is evaluated only on the elements
+of the set that can have a point within the gap. At a reference state α⁰
+(the first one evaluated after the bodies moved) each element's nearest
+point is found, ℓ_e = min_q δ(x_q(α⁰)), the bodies where they are at the
+step's end. A yarn point moves with α by |Γ̃_i (α − α⁰)| ≤ s_i max_k |α_k −
+α⁰_k| over the columns k of its row (s_i = Σ_k |Γ̃_ik|, 1 for B-spline
+weights), so
+
+    δ(x_q(α)) ≥ ℓ_e − ρ_e(α − α⁰),   ρ_e(d) = max_{i ∈ e} s_i max_{k ∈ patch(i)} |d_k|,
+
+and an element with ℓ_e − ρ_e ≥ ĥ adds nothing at α: the energy, forces,
+tangent and step filter at α look at the others only (a sleeve resting on
+an arm: the yarns in the gap, not the band around them).
 """
 
 import numpy as np
 from scipy import sparse
 
 from knitfem.contact.colliders import Barrier
-from knitfem.lod.sparse_tangent import QuadratureProduct
+from knitfem.lod.sparse_tangent import QuadratureProduct, patches
 
 __all__ = ["ActiveContact"]
 
@@ -73,6 +87,8 @@ class ActiveContact:
             (embedding.vals.ravel(), embedding.cols.ravel(),
              np.arange(0, embedding.cols.size + 1, embedding.cols.shape[1])),
             shape=(len(embedding.cols), n))                         # Γ̃ (rank's)
+        self.columns, self.patch = patches(embedding.cols)
+        self.spread = np.abs(embedding.vals).sum(axis=1)                # s_i
         self.allowance, self.step_h = 2 * self.radius, None
         self.active = np.zeros(0, dtype=int)
         self.barrier, self.start, self.window, self.refusals = None, None, None, 0
@@ -91,7 +107,7 @@ class ActiveContact:
         self.active = e
         self.view = ElementView(self.el, e)
         self.Ga = self.G[self.view.points_index]
-        self.kept = None
+        self.kept, self.reference = None, None
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)
 
@@ -124,6 +140,7 @@ class ActiveContact:
             self.barrier.set_step(self.step_h)
             self.window = (t0, t1)
         self.barrier.step_to(t0, t1)
+        self.reference = None
 
     def missed(self, alpha0, alpha1):
         """After a step from α⁰ to α¹: whether an element outside the set may
@@ -141,6 +158,28 @@ class ActiveContact:
         self.window, self.refusals = None, self.refusals + 1
         return True
 
+    # -- the narrow phase --------------------------------------------------------
+    def _reach(self, d):
+        """ρ_e(d) of every element of the set: how far a move d of α (n, 3)
+        can move its yarn points at most (module docstring)."""
+        far = np.linalg.norm(d, axis=1)[self.columns].max(axis=1)    # each patch's
+        pts = self.view.points_index
+        return (self.spread[pts] * far[self.patch[pts]])[self.view.conn].max(axis=1)
+
+    def near(self, alpha, step=None):
+        """The elements of the set (indices into it) that can have a point
+        within the gap at α, or anywhere along the update α + τ ``step``
+        (τ ∈ [0, 1]); the reference taken at α if there is none since the
+        bodies last moved."""
+        if self.reference is None:
+            lo = self.barrier.surface_distance(self._x(alpha))[0].min(axis=1, initial=np.inf)
+            self.reference = (np.array(alpha), lo)
+        ref, lo = self.reference
+        bound = lo - self._reach(alpha - ref)
+        if step is not None:
+            bound -= self._reach(step)
+        return np.flatnonzero(bound < self.gap)
+
     # -- energy, forces, tangent ---------------------------------------------
     def _x(self, alpha):
         """The set's control points Γ_A α, kept for the last α: the energy,
@@ -152,12 +191,12 @@ class ActiveContact:
     def energy(self, alpha):
         """E_c + D on the set."""
         x = self._x(alpha)
-        return self.barrier.energy(x) + self.barrier.friction_potential(x)
+        return self.barrier.energy(x, self.near(alpha)) + self.barrier.friction_potential(x)
 
     def add_forces(self, alpha, out):
         """out (n, 3) += −Γ_Aᵀ ∇(E_c + D)."""
         g = np.zeros((len(self.view.points_index), 3))
-        self.barrier.add_gradient(self._x(alpha), g, -1.0)
+        self.barrier.add_gradient(self._x(alpha), g, -1.0, self.near(alpha))
         out += self.Ga.T @ g
 
     def add_hessian(self, alpha, T):
@@ -172,12 +211,13 @@ class ActiveContact:
         set."""
         if self.product is None or self.product.T is not T:
             self.product = QuadratureProduct(T, self.cols, self.vals, self.el.B)
-        e, Hq = self.barrier.quadrature_hessian(self._x(alpha))
+        e, Hq = self.barrier.quadrature_hessian(self._x(alpha), self.near(alpha))
         self.product.add(self.view.points_index[self.view.conn[e]], Hq)
 
     def step_limit(self, alpha, dalpha):
         """``Barrier.step_limit`` on the set's points."""
-        return self.barrier.step_limit(self._x(alpha), self._x(dalpha))
+        return self.barrier.step_limit(self._x(alpha), self.Ga @ dalpha,
+                                       elements=self.near(alpha, dalpha))
 
     def swept_depth(self, alpha0, alpha1):
         """``Barrier.swept_depth`` on the set's points."""

@@ -26,7 +26,15 @@ from scipy import sparse
 from knitfem.model.assembly import create_aij
 
 __all__ = ["DenseValues", "PatchProduct", "QuadratureProduct", "SparseTangent",
-           "scalar_pattern"]
+           "patches", "scalar_pattern"]
+
+
+def patches(cols):
+    """The volume patches of the rows of Γ̃ whose columns are ``cols`` (m, k):
+    a patch is the rows with the same columns. Returns (the patches'
+    columns (npatch, k), each row's patch (m,))."""
+    columns, patch = np.unique(cols, axis=0, return_inverse=True)
+    return columns, patch.ravel()
 
 
 def scalar_pattern(A):
@@ -259,8 +267,7 @@ class QuadratureProduct:
     def __init__(self, T, cols, vals, B):
         self.T, self.vals, self.B = T, vals, B
         self.n = T.N // 3
-        self.columns, patch = np.unique(cols, axis=0, return_inverse=True)
-        self.patch = patch.ravel()                                   # of each point
+        self.columns, self.patch = patches(cols)
         self.kept, self.last = {}, None
 
     def _positions(self, U):
