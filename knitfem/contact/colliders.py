@@ -490,14 +490,20 @@ class Barrier:
             H_q = μλ (f₁' û ûᵀ + f₁/y (T − û ûᵀ))      (friction, lagged),
 
         of the elements with a point within the gap (among ``elements``:
-        ``energy``) and of the lagged ones: (elements (m,), H (m, nq, 3, 3)),
-        an element lagged and within the gap listed twice."""
+        ``energy``) and of the lagged ones, each element once, its terms
+        summed: (elements (m,), H (m, nq, 3, 3))."""
         e, _, n, H, d1, d2, _ = self._active(x, elements)
         parts = [(e, d2[..., None, None] * n[..., :, None] * n[..., None, :]
                   + d1[..., None, None] * H)]
         if self.lagged is not None:
             parts.append(self._friction_terms(x)[::2])
-        return tuple(np.concatenate(p) for p in zip(*parts))
+        e, Hq = (np.concatenate(p) for p in zip(*parts))
+        if not len(e):
+            return e, Hq
+        order = np.argsort(e, kind="stable")
+        e = e[order]
+        first = np.flatnonzero(np.r_[True, e[1:] != e[:-1]])
+        return e[first], np.add.reduceat(Hq[order], first, axis=0)
 
     def element_hessian(self, x):
         """The 12 × 12 blocks Σ_q b_a b_b H_q of ∂²(E_c + D)/∂p∂p

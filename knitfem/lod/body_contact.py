@@ -43,6 +43,7 @@ import numpy as np
 from scipy import sparse
 
 from knitfem.contact.colliders import Barrier
+from knitfem.lod.rows import EmbeddingRows
 from knitfem.lod.sparse_tangent import QuadratureProduct, patches
 
 __all__ = ["ActiveContact"]
@@ -83,10 +84,8 @@ class ActiveContact:
         n = embedding.volume.size
         self.cols, self.vals = embedding.cols, embedding.vals       # Γ̃'s rows (rank's)
         self.product = None
-        self.G = sparse.csr_matrix(
-            (embedding.vals.ravel(), embedding.cols.ravel(),
-             np.arange(0, embedding.cols.size + 1, embedding.cols.shape[1])),
-            shape=(len(embedding.cols), n))                         # Γ̃ (rank's)
+        self.G = EmbeddingRows(embedding.cols, embedding.vals, n,
+                               compiled=full.kernels.kind == "compiled")  # Γ̃ (rank's)
         self.columns, self.patch = patches(embedding.cols)
         self.spread = np.abs(embedding.vals).sum(axis=1)                # s_i
         self.allowance, self.step_h = 2 * self.radius, None
@@ -106,7 +105,7 @@ class ActiveContact:
         """The barrier on the elements e (sorted)."""
         self.active = e
         self.view = ElementView(self.el, e)
-        self.Ga = self.G[self.view.points_index]
+        self.Ga = self.G.rows(self.view.points_index)
         self.kept, self.reference = None, None
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)

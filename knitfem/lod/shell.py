@@ -46,6 +46,7 @@ import numpy as np
 from scipy import sparse
 
 from knitfem.knit.pattern import SEGMENTS_PER_STITCH
+from knitfem.lod.rows import EmbeddingRows
 
 __all__ = ["ShellStretch"]
 
@@ -80,12 +81,8 @@ class ShellStretch:
         q = np.flatnonzero(kept[win] >= 0)
         cols, vals, self.L2, W = cols[q], vals[q], L2[q], W[q]
         self.win, self.L, self.xi = kept[win[q]], L[keep], xi
-        # D's own copies: scipy sorts a row's columns (a periodic volume's
-        # wrap round) in place, which must not reorder ``vals``
-        self.D = sparse.csr_matrix((vals.ravel().copy(), cols.ravel().copy(),
-                                    np.arange(0, cols.size + 1, cols.shape[1])),
-                                   shape=(len(cols), vol.size))
-        self.Dt = self.D.T.tocsr()                                   # Dᵀ, by rows
+        self.D = EmbeddingRows(cols, vals, vol.size,
+                               compiled=full.kernels.kind == "compiled")
         self.share = W / self.L[self.win]                            # W_q / L_w
         self.cols, self.vals = cols, vals
         # the points over each patch of V share its 32 columns: their rows
@@ -127,7 +124,7 @@ class ShellStretch:
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
         t, f = self._forces(A)
-        out += self.Dt @ (scale * f[:, None] * t)
+        out += self.D.T @ (scale * f[:, None] * t)
 
     def _patch_blocks(self, f):
         """Σ_{q over P} f_q D_qᵀ D_q of every patch P of V, (patches, 32, 32)
@@ -245,7 +242,7 @@ class ShellStretch:
         volume control points that a stitch's points reach, all to all."""
         reach = abs(sparse.csr_matrix((np.ones(len(self.win)), (self.win,
                                        np.arange(len(self.win)))),
-                                      shape=(len(self.L), len(self.win)))) @ abs(self.D)
+                                      shape=(len(self.L), len(self.win)))) @ abs(self.D.tocsr())
         reach.data[:] = 1.0
         return reach.T @ reach
 

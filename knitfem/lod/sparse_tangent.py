@@ -23,6 +23,7 @@ import numpy as np
 from petsc4py import PETSc
 from scipy import sparse
 
+from knitfem.lod.rows import add_at
 from knitfem.model.assembly import create_aij
 
 __all__ = ["DenseValues", "PatchProduct", "QuadratureProduct", "SparseTangent",
@@ -109,7 +110,7 @@ class SparseTangent:
     def add_at(self, pos, x):
         """values[pos] += x (arrays of a shape, ``pos`` from ``positions``),
         entries at the same position summed, those at ``nnz`` dropped."""
-        self.values += np.bincount(pos.ravel(), x.ravel(), minlength=self.nnz + 1)[:-1]
+        add_at(self.values, pos, x)
 
     def add(self, A):
         """values += the entries of the scipy sparse matrix ``A`` (3n × 3n);
@@ -164,8 +165,7 @@ class DenseValues:
     def add_at(self, pos, x):
         """R's entries at ``pos`` += x (summed where they meet; ``nnz``
         dropped)."""
-        flat = self.R.reshape(-1)
-        flat += np.bincount(pos.ravel(), x.ravel(), minlength=self.nnz + 1)[:-1]
+        add_at(self.R.reshape(-1), pos, x)
 
 
 class PatchProduct:
