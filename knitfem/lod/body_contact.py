@@ -48,6 +48,9 @@ from knitfem.lod.sparse_tangent import QuadratureProduct, patches
 
 __all__ = ["ActiveContact"]
 
+PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+"""The pairs of an element's four control points."""
+
 
 class ElementView:
     """Some yarn elements ``e`` of ``elements`` over their own control points
@@ -98,7 +101,8 @@ class ActiveContact:
         """min_a φ(p_a) − d_e − r of every element at control points X."""
         phi = np.min([body.phi(X) for body in self.bodies], axis=0)
         P = X[self.el.conn]                                          # (ne, 4, 3)
-        d = np.max(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=(1, 2))
+        d = np.sqrt(np.max([np.einsum("ei,ei->e", u, u) for u in (
+            P[:, a] - P[:, b] for a, b in PAIRS)], axis=0))
         return phi[self.el.conn].min(axis=1) - d - self.radius
 
     def _use(self, e):
