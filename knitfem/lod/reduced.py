@@ -393,7 +393,8 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             pattern = scalar_pattern(self.m)
             if shell is not None:
                 pattern = pattern + self._summed_pattern(shell.pattern())
-            self.sparse = SparseTangent(self.comm, pattern, self.M.getOwnershipRange())
+            self.sparse = SparseTangent(self.comm, pattern, self.M.getOwnershipRange(),
+                                        compiled=self.full.kernels.kind == "compiled")
         if sampled is not None or shell is not None:   # every α on every rank
             self.gather, self.alpha_all = PETSc.Scatter.toAll(self.Qg)
         # the integrators' Newton matrices, too, are dense on one rank
@@ -664,7 +665,8 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
 
                 N = 3 * self.embedding.volume.size
                 self.R = np.zeros((N, N))
-                self.R_values = DenseValues(self.R)
+                self.R_values = DenseValues(
+                    self.R, compiled=self.full.kernels.kind == "compiled")
             reduce(self.R)
             self._summed(self.R)
             lo, hi = self.M.getOwnershipRange()

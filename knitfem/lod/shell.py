@@ -252,7 +252,7 @@ class ShellStretch:
         from knitfem.lod.sparse_tangent import DenseValues
 
         if self.dense is None or self.dense.R is not out:
-            self.dense = DenseValues(out)
+            self.dense = DenseValues(out, compiled=self.D.compiled)
         self.add_tangent(A, self.dense, convex)
 
 

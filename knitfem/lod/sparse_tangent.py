@@ -59,11 +59,12 @@ class SparseTangent:
     ``rows`` = (lo, hi) of this rank (collective).
 
     Every rank adds the contributions of its own yarns to any row;
-    ``assemble`` sums them over the ranks.
+    ``assemble`` sums them over the ranks. ``compiled``: values added by
+    the compiled scatter, else by numpy's bincount (``rows.add_at``).
     """
 
-    def __init__(self, comm, pattern, rows):
-        self.comm = comm
+    def __init__(self, comm, pattern, rows, compiled=True):
+        self.comm, self.compiled = comm, compiled
         P = sparse.kron(sparse.csr_matrix(pattern, dtype=float),
                         np.ones((3, 3)), format="csr")
         P.sum_duplicates()
@@ -110,7 +111,7 @@ class SparseTangent:
     def add_at(self, pos, x):
         """values[pos] += x (arrays of a shape, ``pos`` from ``positions``),
         entries at the same position summed, those at ``nnz`` dropped."""
-        add_at(self.values, pos, x)
+        add_at(self.values, pos, x, self.compiled)
 
     def add(self, A):
         """values += the entries of the scipy sparse matrix ``A`` (3n × 3n);
@@ -147,9 +148,11 @@ class DenseValues:
     """A dense N × N array ``R`` seen as a ``SparseTangent``'s values (every
     entry in the pattern, at position r N + c), so that the parts laid out
     for the sparse tangent add into the dense one the same way (``R``
-    C-ordered: its values are added in place)."""
+    C-ordered: its values are added in place; ``compiled`` as
+    ``SparseTangent``'s)."""
 
-    def __init__(self, R):
+    def __init__(self, R, compiled=True):
+        self.compiled = compiled
         if not R.flags.c_contiguous:
             raise ValueError("DenseValues: R must be a C-ordered array (its entries "
                              "are added in place through a flat view)")
@@ -165,7 +168,7 @@ class DenseValues:
     def add_at(self, pos, x):
         """R's entries at ``pos`` += x (summed where they meet; ``nnz``
         dropped)."""
-        add_at(self.R.reshape(-1), pos, x)
+        add_at(self.R.reshape(-1), pos, x, self.compiled)
 
 
 class PatchProduct:
