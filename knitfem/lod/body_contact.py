@@ -213,7 +213,8 @@ class ActiveContact:
         ``QuadratureProduct``: the cost follows the contact region, not the
         set."""
         if self.product is None or self.product.T is not T:
-            self.product = QuadratureProduct(T, self.cols, self.vals, self.el.B)
+            self.product = QuadratureProduct(T, self.cols, self.vals, self.el.B,
+                                             (self.columns, self.patch))
         e, Hq = self.barrier.quadrature_hessian(self._x(alpha), self.near(alpha))
         self.product.add(self.view.points_index[self.view.conn[e]], Hq)
 

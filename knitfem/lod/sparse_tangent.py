@@ -264,13 +264,13 @@ class QuadratureProduct:
     C_U the group's c_q over U, (points, |U|), Z over the six entries i ≤ j
     of the symmetric H_q (the others are their transposes). The positions
     of a group's entries in ``T`` are found at its first call and kept (by
-    U).
+    U). ``patched``: ``patches(cols)``, if the caller has it.
     """
 
-    def __init__(self, T, cols, vals, B):
+    def __init__(self, T, cols, vals, B, patched=None):
         self.T, self.vals, self.B = T, vals, B
         self.n = T.N // 3
-        self.columns, self.patch = patches(cols)
+        self.columns, self.patch = patched or patches(cols)
         self.kept, self.last = {}, None
 
     def _positions(self, U):
