@@ -510,8 +510,9 @@ class Barrier:
         (``quadrature_hessian``): (elements (m,), blocks (m, 12, 12))."""
         e, Hq = self.quadrature_hessian(x)
         B = self.el.B
-        return e, np.einsum("qa,qb,eqij->eaibj", B, B, Hq,
-                            optimize=True).reshape(-1, 12, 12)
+        BB = (B[:, :, None] * B[:, None, :]).reshape(len(B), 16)     # b_a b_b at q
+        blocks = (BB.T @ Hq.reshape(len(e), len(B), 9)).reshape(-1, 4, 4, 3, 3)
+        return e, blocks.transpose(0, 1, 3, 2, 4).reshape(-1, 12, 12)
 
     def swept_depth(self, x0, x1, floor=None, resolution=0.5):
         """The deepest δ along the straight paths of the quadrature points
