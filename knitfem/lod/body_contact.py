@@ -110,6 +110,8 @@ class ActiveContact:
         self.active = e
         self.view = ElementView(self.el, e)
         self.Ga = self.G.rows(self.view.points_index)
+        self.set_patch = self.patch[self.view.points_index]          # of the set's points
+        self.set_spread = self.spread[self.view.points_index]
         self.kept, self.reference = None, None
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
                                gap=self.gap / self.radius, friction=self.friction)
@@ -166,8 +168,7 @@ class ActiveContact:
         """ρ_e(d) of every element of the set: how far a move d of α (n, 3)
         can move its yarn points at most (module docstring)."""
         far = np.linalg.norm(d, axis=1)[self.columns].max(axis=1)    # each patch's
-        pts = self.view.points_index
-        return (self.spread[pts] * far[self.patch[pts]])[self.view.conn].max(axis=1)
+        return (self.set_spread * far[self.set_patch])[self.view.conn].max(axis=1)
 
     def near(self, alpha, step=None):
         """The elements of the set (indices into it) that can have a point
