@@ -6,9 +6,9 @@ patch (``Embedding.cols``, ``vals``). The reduced model applies such rows
 (Γ̃ itself, a subset of it, the shell's D) to α and their transpose to
 forces at every evaluation, so ``EmbeddingRows`` keeps them in this fixed
 shape and applies them by compiled loops (``_rows.pyx``, 2.4× and 1.6×
-faster than scipy's sparse products on the rows of a sleeve's contact set)
-or by scipy's products (``compiled=False``: the reference the tests hold
-them to).
+faster than scipy's sparse products on 36 000 rows, a 60×120 sleeve's
+contact set) or by scipy's products (``compiled=False``: the reference the
+tests hold them to).
 """
 
 import numpy as np
