@@ -85,7 +85,6 @@ class ActiveContact:
         self.gap, self.friction = whole.gap, whole.mu
         self.weight = full.material.rho * full.material.gravity
         n = embedding.volume.size
-        self.cols, self.vals = embedding.cols, embedding.vals       # Γ̃'s rows (rank's)
         self.product = None
         self.G = EmbeddingRows(embedding.cols, embedding.vals, n,
                                compiled=full.kernels.kind == "compiled")  # Γ̃ (rank's)
@@ -214,7 +213,7 @@ class ActiveContact:
         ``QuadratureProduct``: the cost follows the contact region, not the
         set."""
         if self.product is None or self.product.T is not T:
-            self.product = QuadratureProduct(T, self.cols, self.vals, self.el.B,
+            self.product = QuadratureProduct(T, self.G.cols, self.G.vals, self.el.B,
                                              (self.columns, self.patch))
         e, Hq = self.barrier.quadrature_hessian(self._x(alpha), self.near(alpha))
         self.product.add(self.view.points_index[self.view.conn[e]], Hq)
