@@ -497,6 +497,24 @@ def test_the_narrow_phase_keeps_every_element_that_can_reach_the_gap():
         c.barrier.step_limit(x, dx)
 
 
+def test_an_elements_reach_is_a_max_over_its_distinct_patches():
+    """``element_patches``: ρ_e = max_a s_a far[patch_a] over an element's
+    four points, as a max over its distinct patches (one to four of them,
+    an element with none: nothing)."""
+    from knitfem.lod.body_contact import element_patches
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7):
+        patch = rng.integers(0, n, (300, 4))
+        spread = rng.uniform(0.5, 1.5, (300, 4))
+        far = rng.random(n)
+        P, S = element_patches(patch, spread)
+        assert len(P) == min(n, 4)                 # the most distinct patches of a row
+        assert np.array_equal(np.max(S * far[P], axis=0), (spread * far[patch]).max(axis=1))
+    P, S = element_patches(np.zeros((0, 4), dtype=int), np.zeros((0, 4)))
+    assert np.max(S * far[P], axis=0, initial=0.0).shape == (0,)
+
+
 def test_shell_on_sampled_stitches_weighs_what_it_stands_for():
     """Every patch's stitches sampled: exact; a few a patch: weights summing
     to the stitch count, and the rest and rigid motions still free."""

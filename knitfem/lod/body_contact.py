@@ -52,6 +52,26 @@ PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 """The pairs of an element's four control points."""
 
 
+def element_patches(patch, spread):
+    """Each element's distinct patches and the largest s_i of its points in
+    each, from its points' ``patch`` and ``spread`` (m, 4): two (k, m)
+    arrays, k the most patches an element's points lie in (rows past an
+    element's own repeat its first), so that ρ_e(d) = max over k of
+    spread × far[patch] (most elements lie in one patch)."""
+    m = len(patch)
+    if not m:
+        return np.zeros((1, 0), dtype=int), np.zeros((1, 0))
+    order = np.argsort(patch, axis=1, kind="stable")
+    patch = np.take_along_axis(patch, order, 1).ravel()
+    spread = np.take_along_axis(spread, order, 1).ravel()
+    starts = np.flatnonzero(np.r_[True, patch[1:] != patch[:-1]]
+                            | (np.arange(4 * m) % 4 == 0))       # runs within a row
+    count = np.bincount(starts // 4, minlength=m)
+    first = np.cumsum(count) - count
+    run = first + np.minimum(np.arange(count.max())[:, None], count - 1)
+    return patch[starts[run]], np.maximum.reduceat(spread, starts)[run]
+
+
 class ElementView:
     """Some yarn elements ``e`` of ``elements`` over their own control points
     (``points_index``, rows of the rank's), as ``colliders.Barrier`` uses
@@ -98,7 +118,7 @@ class ActiveContact:
     # -- the set ---------------------------------------------------------------
     def _bound(self, X):
         """min_a φ(p_a) − d_e − r of every element at control points X."""
-        phi = np.min([body.phi(X) for body in self.bodies], axis=0)
+        phi = np.min([self.barrier.phi(body, X) for body in self.bodies], axis=0)
         P = X[self.el.conn]                                          # (ne, 4, 3)
         d = np.sqrt(np.max([np.einsum("ei,ei->e", u, u) for u in (
             P[:, a] - P[:, b] for a, b in PAIRS)], axis=0))
@@ -109,11 +129,13 @@ class ActiveContact:
         self.active = e
         self.view = ElementView(self.el, e)
         self.Ga = self.G.rows(self.view.points_index)
-        self.set_patch = self.patch[self.view.points_index]          # of the set's points
-        self.set_spread = self.spread[self.view.points_index]
+        points = self.view.points_index[self.view.conn]
+        self.reach_patch, self.reach_spread = element_patches(self.patch[points],
+                                                              self.spread[points])
         self.kept, self.reference = None, None
         self.barrier = Barrier(self.bodies, self.view, self.radius, self.weight,
-                               gap=self.gap / self.radius, friction=self.friction)
+                               gap=self.gap / self.radius, friction=self.friction,
+                               compiled=self.full.kernels.kind == "compiled")
 
     def begin(self, alpha, t0):
         """A step starts from α⁰ = ``alpha`` at t₀: the set is formed again at
@@ -167,7 +189,7 @@ class ActiveContact:
         """ρ_e(d) of every element of the set: how far a move d of α (n, 3)
         can move its yarn points at most (module docstring)."""
         far = np.linalg.norm(d, axis=1)[self.columns].max(axis=1)    # each patch's
-        return (self.set_spread * far[self.set_patch])[self.view.conn].max(axis=1)
+        return np.max(self.reach_spread * far[self.reach_patch], axis=0, initial=0.0)
 
     def near(self, alpha, step=None):
         """The elements of the set (indices into it) that can have a point
