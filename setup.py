@@ -5,7 +5,8 @@ matplotlib); they are not listed in install_requires so that pip never
 replaces Debian's numpy, which petsc4py is built against.
 
 The compiled yarn kernels (``knitfem/yarn/_compiled.pyx``), the yarn
-contact's (``knitfem/contact/_pairs.pyx``) and the embedding's rows
+contact's (``knitfem/contact/_pairs.pyx``), the bodies' distances
+(``knitfem/contact/_bodies.pyx``) and the embedding's rows
 (``knitfem/lod/_rows.pyx``) are built here by
 Debian's Cython (``cython3``) and gcc: ``pip install -e .`` (``make setup``)
 compiles them in place.
@@ -18,6 +19,8 @@ KERNELS = Extension("knitfem.yarn._compiled", ["knitfem/yarn/_compiled.pyx"],
                     extra_compile_args=["-O3"], libraries=["blas"])
 PAIRS = Extension("knitfem.contact._pairs", ["knitfem/contact/_pairs.pyx"],
                   extra_compile_args=["-O3"])
+BODIES = Extension("knitfem.contact._bodies", ["knitfem/contact/_bodies.pyx"],
+                   extra_compile_args=["-O3"])
 ROWS = Extension("knitfem.lod._rows", ["knitfem/lod/_rows.pyx"],
                  extra_compile_args=["-O3"])
 
@@ -31,6 +34,6 @@ setup(
               "solvers", "benchmarks"],
     package_data={"solvers": ["*.rc"]},
     python_requires=">=3.9",
-    ext_modules=cythonize([KERNELS, PAIRS, ROWS], language_level=3),
+    ext_modules=cythonize([KERNELS, PAIRS, BODIES, ROWS], language_level=3),
     entry_points={"console_scripts": ["knitfem = knitfem.cli.main:main"]},
 )

@@ -64,8 +64,11 @@ import numpy as np
 
 from knitfem.contact.motion import moving
 from knitfem.contact.segments import closest_parameters
+from knitfem.yarn.kernels import compiled_module
 
 __all__ = ["Sphere", "Capsule", "Plane", "Barrier", "parse_colliders", "KINDS"]
+
+BODIES_VERSION = 1          # of knitfem/contact/_bodies.pyx, which this module calls
 
 SLIP_SPEED = 5e-3
 """ε_v [m/s] of friction's smoothing ε = ε_v h (IPC's; at least 0.001 r), h
@@ -105,6 +108,24 @@ def _unit(d):
     """(d/|d|, |d|) row-wise."""
     r = np.linalg.norm(d, axis=-1)
     return d / np.maximum(r, 1e-300)[..., None], r
+
+
+def signed_distance(body, x, compiled=None):
+    """φ of ``body`` at the points x (n, 3): by the compiled loops of
+    ``compiled`` (``_bodies.pyx``) where given and the body, as it is posed,
+    is a sphere or a capsule, else by the body's own ``phi`` (the numpy
+    reference)."""
+    shape = getattr(body, "body", body)                 # a moving body's pose
+    if compiled is None or not isinstance(shape, (Sphere, Capsule)):
+        return body.phi(x)
+    x = np.ascontiguousarray(x, dtype=float)
+    out = np.empty(len(x))
+    if isinstance(shape, Sphere):
+        compiled.sphere_phi(x, np.asarray(shape.centre, dtype=float), shape.R, out)
+    else:
+        compiled.capsule_phi(x, np.asarray(shape.a, dtype=float),
+                             np.asarray(shape.b, dtype=float), shape.R, out)
+    return out
 
 
 @dataclass
@@ -303,15 +324,23 @@ def parse_colliders(text):
 class Barrier:
     """E_c of the yarn elements ``elements`` (``yarn.YarnElements``) against
     ``bodies``: energy, forces and tangent blocks (module docstring); gap ĥ =
-    ``gap`` × r, κ = 1e4 ρ g / ĥ² (``weight`` = ρ g, N/m)."""
+    ``gap`` × r, κ = 1e4 ρ g / ĥ² (``weight`` = ρ g, N/m); ``compiled``: the
+    bodies' φ by compiled loops (``signed_distance``), else by numpy."""
 
-    def __init__(self, bodies, elements, radius, weight, gap=0.1, friction=0.0):
+    def __init__(self, bodies, elements, radius, weight, gap=0.1, friction=0.0,
+                 compiled=False):
         self.bodies, self.el, self.radius = bodies, elements, radius
+        self.kernels = compiled_module("knitfem.contact._bodies", BODIES_VERSION) \
+            if compiled else None
         self.gap = gap * radius
         self.kappa = 1e4 * max(weight, 1e-12) / self.gap**2
         self.mu, self.eps_slip = friction, 0.01 * radius
         self.lagged, self.step_h = None, None
         self.distance_at = None
+
+    def phi(self, body, x):
+        """φ of one of the bodies at the points x (``signed_distance``)."""
+        return signed_distance(body, x, self.kernels)
 
     def at(self, t):
         """Pose the moving bodies at time t."""
@@ -423,7 +452,7 @@ class Barrier:
         if (kept is None or kept[1] != poses or not np.array_equal(kept[0], x)
                 or not _same(kept[2], elements)):
             pts = self._points(x, elements)
-            each = np.stack([body.phi(pts.reshape(-1, 3)) for body in self.bodies])
+            each = np.stack([self.phi(body, pts.reshape(-1, 3)) for body in self.bodies])
             each = each.reshape((len(self.bodies),) + pts.shape[:2]) - self.radius
             nearest = np.argmin(each, axis=0)
             kept = self.distance_at = (
@@ -553,7 +582,7 @@ class Barrier:
             for tau in np.arange(1, m + 1) / m:
                 if window is not None and moving(body):
                     body.at(window[0] + tau * (window[1] - window[0]))
-                deepest = min(deepest, float(body.phi(a + tau * d).min()) - self.radius)
+                deepest = min(deepest, float(self.phi(body, a + tau * d).min()) - self.radius)
         return deepest
 
     def carried(self, t0, t1, x):
@@ -593,14 +622,14 @@ class Barrier:
                 continue
             p_, q_, b_ = p[near], q[near], bound[near]
             hi = body.lowest(p_, q_)
-            cross = body.phi(p_ + hi[:, None] * q_) < b_
+            cross = self.phi(body, p_ + hi[:, None] * q_) < b_
             if not cross.any():
                 continue
             p_, q_, b_, hi = p_[cross], q_[cross], b_[cross], hi[cross]
             lo = np.zeros(len(b_))
             for _ in range(iterations):
                 mid = 0.5 * (lo + hi)
-                below = body.phi(p_ + mid[:, None] * q_) < b_
+                below = self.phi(body, p_ + mid[:, None] * q_) < b_
                 hi = np.where(below, mid, hi)
                 lo = np.where(below, lo, mid)
             tau = min(tau, float(lo.min()))

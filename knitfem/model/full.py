@@ -135,7 +135,8 @@ class FullModel:
             self.kernels = yarn_kernels(self.elements, kernels)
             self.barrier = Barrier(fabric.bodies, self.elements, fabric.radius,
                                    material.rho * material.gravity,
-                                   friction=fabric.friction) \
+                                   friction=fabric.friction,
+                                   compiled=self.kernels.kind == "compiled") \
                 if fabric.bodies else None
             self.yarn_contact = YarnContact(fabric, material.EI, kernels=kernels) \
                 if yarn_contact else None
