@@ -38,7 +38,9 @@ With f_q = EA L_w ē_w W_q / (L_w L_q²) and J_w = ∂ē_w/∂α = Σ_{q∈w} W_
     ∂E_s/∂α = Σ_q f_q D_qᵀ t_q,   ∂²E_s/∂α² = Σ_q f_q D_qᵀ D_q ⊗ I₃ + Σ_w EA L_w J_w J_wᵀ,
 
 the first sum a patch of V at a time (the rows of D of the points over one
-patch share its 32 columns). Rigid motions of α turn every t_q: free.
+patch share its 32 columns). It is Σ_w c_w M_w, c_w = EA L_w ē_w and
+M_w = Σ_{q∈w} W_q/(L_w L_q²) D_qᵀ D_q constant: the tangent sums a matrix a
+window, not a product a point. Rigid motions of α turn every t_q: free.
 Bending stays the yarn curve's own, E_b(Γα).
 """
 
@@ -85,21 +87,38 @@ class ShellStretch:
                                compiled=full.kernels.kind == "compiled")
         self.share = W / self.L[self.win]                            # W_q / L_w
         self.cols, self.vals = cols, vals
-        # the points over each patch of V share its 32 columns: their rows
-        # of D stacked a patch at a time, padded with zero rows
-        keys, patch = np.unique(cols, axis=0, return_inverse=True)
-        patch = patch.ravel()
-        order = np.argsort(patch, kind="stable")
-        count = np.bincount(patch, minlength=len(keys))
-        slot = np.arange(len(patch)) - np.repeat(np.cumsum(count) - count, count)
-        self.keys = keys
-        self.stack = np.zeros((len(keys), count.max(initial=0), cols.shape[1]))
-        self.stack[patch[order], slot] = vals[order]
-        self.stack_t = np.ascontiguousarray(self.stack.transpose(0, 2, 1))
-        self.where = (patch[order], slot, order)
+        # the points over each patch of V share its 32 columns (``keys``)
+        self.keys, patch = np.unique(cols, axis=0, return_inverse=True)
+        self._pair_matrices(patch.ravel())
         self.placed = None            # (T, positions) of add_tangent's first call for T
         self.kept = None              # (A, t, ē) of the last _strain
         self.dense = None             # add_hessian's dense array as values
+
+    def _pair_matrices(self, patch):
+        """The constant M_wP = Σ_{q∈w over P} g_q D_qᵀ D_q of every (window,
+        patch) pair, g_q = W_q/(L_w L_q²), as upper triangles (pairs,
+        k(k+1)/2), and the sparse sum over a patch's pairs (``_patch_blocks``),
+        from each point's ``patch``: f_q = c_w g_q, c_w = EA ξ_w L_w ē_w, so
+        Σ_{q over P} f_q D_qᵀ D_q = Σ_w c_w M_wP."""
+        nwin, k = len(self.L), self.cols.shape[1]
+        keys, pair = np.unique(patch * nwin + self.win, return_inverse=True)
+        pair = pair.ravel()
+        order = np.argsort(pair, kind="stable")
+        count = np.bincount(pair, minlength=len(keys))
+        slot = np.arange(len(pair)) - np.repeat(np.cumsum(count) - count, count)
+        rows = np.zeros((len(keys), count.max(initial=0), k))
+        rows[pair[order], slot] = self.vals[order]
+        g = np.zeros(rows.shape[:2])
+        g[pair[order], slot] = (self.share / self.L2)[order]
+        self.upper = np.triu_indices(k)
+        M = np.matmul(rows.transpose(0, 2, 1), rows * g[..., None])
+        self.pair_matrices = M[:, self.upper[0], self.upper[1]]
+        self.pair_window = keys % nwin
+        npatch = len(self.keys)
+        self.pair_sum = sparse.csr_matrix(
+            (np.zeros(len(keys)), np.arange(len(keys)),
+             np.searchsorted(keys // nwin, np.arange(npatch + 1))),
+            shape=(npatch, len(keys)))
 
     def _strain(self, A):
         """t_q (npts, 3) and ē_w (nwin,), kept for the last A: the energy,
@@ -126,43 +145,54 @@ class ShellStretch:
         t, f = self._forces(A)
         out += self.D.T @ (scale * f[:, None] * t)
 
-    def _patch_blocks(self, f):
-        """Σ_{q over P} f_q D_qᵀ D_q of every patch P of V, (patches, 32, 32)
-        on its columns ``keys``: a GEMM a patch."""
-        p, slot, order = self.where
-        fs = np.zeros(self.stack.shape[:2])
-        fs[p, slot] = f[order]
-        return np.matmul(self.stack_t, self.stack * fs[..., None])
+    def _stress(self, A):
+        """c_w = EA ξ_w L_w ē_w of every window: f_q = c_w W_q/(L_w L_q²)."""
+        return self.EA * self.xi * self.L * self._strain(A)[1]
+
+    def _patch_blocks(self, c):
+        """Σ_{q over P} f_q D_qᵀ D_q = Σ_w c_w M_wP of every patch P of V,
+        (patches, 32, 32) on its columns ``keys`` (``_pair_matrices``): one
+        sparse product of the windows' c_w with the pairs' upper triangles."""
+        self.pair_sum.data[:] = c[self.pair_window]
+        upper = self.pair_sum @ self.pair_matrices
+        k = self.cols.shape[1]
+        blocks = np.empty((len(upper), k, k))
+        blocks[:, self.upper[0], self.upper[1]] = upper
+        blocks[:, self.upper[1], self.upper[0]] = upper
+        return blocks
 
     def add_tangent(self, A, T, convex=False):
         """T's values (a ``SparseTangent``) += ∂²E_s/∂α² (``hessian_parts``),
         each part placed by positions found at the first call for T: the
         patches' blocks ⊗ I₃, and Jᵀ diag(EA ξ L) J a group of windows at a
         time (those whose first point lies over a patch), J_g (windows ×
-        3 U_g, U_g the columns they reach) formed by a sparse map of the
-        points' s_q t_q, s_q = W_q/(L_w L_q²), and J_gᵀ diag J_g by one GEMM.
+        3 U_g, U_g the columns they reach) formed by the compiled transpose
+        of rows that map the points' s_q t_q, s_q = W_q/(L_w L_q²), into it,
+        and J_gᵀ diag J_g by one GEMM.
 
         ``convex``: the compressed stitches' geometric stiffness dropped,
-        f_q replaced by max(f_q, 0) in the first sum. Both sums are then
+        c_w replaced by max(c_w, 0) in the first sum (f_q = c_w s_q). Both sums are then
         positive semi-definite: a stitch whose yarn is compressed (ē_w < 0)
         softens by EA |ē_w| D_qᵀ D_q in every direction, which on a sleeve
         crumpled at a bending elbow makes the exact tangent indefinite."""
         if self.placed is None or self.placed[0] is not T:
             self.placed = (T, self._placement(T))
         _, (pos, Jmap, scale, jpos) = self.placed
-        t, f = self._forces(A)
+        c = self._stress(A)
         if convex:
-            f = np.maximum(f, 0.0)
-        blocks = self._patch_blocks(f)
+            c = np.maximum(c, 0.0)
+        blocks = self._patch_blocks(c)
         T.add_at(pos, np.broadcast_to(blocks[..., None], pos.shape))
         ng, nw = scale.shape
-        J = (Jmap @ ((self.share / self.L2)[:, None] * t)).reshape(ng, nw, -1)
+        t = self._strain(A)[0]
+        J = (Jmap.T @ ((self.share / self.L2)[:, None] * t)).reshape(ng, nw, -1)
         T.add_at(jpos, np.matmul(J.transpose(0, 2, 1) * scale[:, None, :], J))
 
     def _placement(self, T):
         """(pos, Jmap, scale, jpos) of ``add_tangent`` for T: the positions
-        of the patches' blocks ⊗ I₃ (patches, 32, 32, 3); the sparse map of
-        s_q t_q to the groups' J_g, padded (groups · windows · U) × points;
+        of the patches' blocks ⊗ I₃ (patches, 32, 32, 3); the rows whose
+        transpose maps s_q t_q to the groups' J_g, padded (points ×
+        groups · windows · U, ``EmbeddingRows``);
         EA ξ_w L_w of each group's windows (groups, windows); the positions
         of J_gᵀ diag J_g (groups, U, 3, U, 3)."""
         c = np.arange(3)
@@ -180,10 +210,8 @@ class ShellStretch:
         first = np.cumsum(width) - width
         u = u.reshape(self.cols.shape) - first[g][:, None]
         ng, nw, wide = len(count), count.max(), width.max()
-        Jmap = sparse.csr_matrix(
-            (self.vals.ravel(), ((((g * nw + wslot[self.win])[:, None] * wide + u)).ravel(),
-                                 np.repeat(np.arange(len(g)), self.cols.shape[1]))),
-            shape=(ng * nw * wide, len(g)))
+        Jmap = EmbeddingRows((g * nw + wslot[self.win])[:, None] * wide + u, self.vals,
+                             ng * nw * wide, compiled=self.D.compiled)
         scale = np.zeros((ng, nw))
         scale[group, wslot] = self.EA * self.xi * self.L
         U = np.zeros((ng, wide), dtype=np.int64)
@@ -201,12 +229,12 @@ class ShellStretch:
     def hessian_parts(self, A):
         """∂²E_s/∂α² (3n × 3n) as two scipy matrices whose sum it is, α
         interleaved (3c + i): the points' Σ_q f_q D_qᵀ D_q ⊗ I₃ from the
-        patches' stacked rows (COO, its 3 × 3 blocks' diagonals), and
+        windows' constant matrices (COO, its 3 × 3 blocks' diagonals), and
         Jᵀ diag(EA ξ L) J, J_w = Σ_{q∈w} W_q/(L_w L_q²) D_qᵀ t_q (J on a
         pattern laid out at the first call)."""
-        t, f = self._forces(A)
+        t = self._strain(A)[0]
         n = self.D.shape[1]
-        blocks = self._patch_blocks(f)
+        blocks = self._patch_blocks(self._stress(A))
         k, c = self.keys.shape[1], np.arange(3)
         rows = (3 * np.repeat(self.keys, k, axis=1)[..., None] + c).ravel()
         cols = (3 * np.tile(self.keys, k)[..., None] + c).ravel()
