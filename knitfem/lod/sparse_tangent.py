@@ -295,13 +295,26 @@ class QuadratureProduct:
         within = np.searchsorted(keys, np.arange(g)[:, None] * self.n + cols) - first[:, None]
         return keys % self.n, first, width, within.reshape(g, 4, k)
 
+    def _groups(self, conn):
+        """The distinct tuples of patches of the elements' four points, (g,
+        4), and each element's group: by one integer key an element (``n``
+        patches, n⁴ < 2⁶³), else by numpy's unique of rows."""
+        p = self.patch[conn]
+        n = len(self.columns)
+        if n**4 >= 2**63:
+            groups, group = np.unique(p, axis=0, return_inverse=True)
+            return groups, group.ravel()
+        keys, group = np.unique(((p[:, 0] * n + p[:, 1]) * n + p[:, 2]) * n + p[:, 3],
+                                return_inverse=True)
+        return np.stack([keys // n**3, keys // n**2 % n, keys // n % n, keys % n],
+                        axis=1), group
+
     def add(self, conn, H):
         """T's values += Σ_q (c_q c_qᵀ) ⊗ H_q over the elements of control
         points ``conn`` (m, 4) (rows of ``cols``) and H (m, nq, 3, 3)."""
         if not len(conn):
             return
-        groups, group = np.unique(self.patch[conn], axis=0, return_inverse=True)
-        group = group.ravel()
+        groups, group = self._groups(conn)
         order = np.argsort(group, kind="stable")
         conn, H, group = conn[order], H[order], group[order]
         columns, first, width, within = self._unions(groups)
