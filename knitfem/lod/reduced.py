@@ -386,7 +386,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         self.dense = (GroupedTangent(full.pattern, embedding.cols, embedding.vals, size)
                       if sampled is None and compiled and
                       (size <= DENSE_LIMIT or shell is not None) else None)
-        self.sparse = self.yarns = None
+        self.sparse = self.yarns = self.exact_kept = None
         if size > DENSE_LIMIT and (sampled is not None or shell is not None):
             from knitfem.lod.sparse_tangent import SparseTangent, scalar_pattern
 
@@ -595,7 +595,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             if self.sparse is not None:
                 return self._sparse_stiffness(
                     A, lambda T: self._yarns(T).add(self.sampled.hessian_values(A, ref)),
-                    convex)
+                    convex, ref)
 
             def reduce(R):
                 self.sampled.tangent(A, R, ref)
@@ -607,12 +607,13 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         x = self.full_state(alpha, self.eps)
         ref = None if xref is None else self.full_state(xref, self.eps_ref)
         if self.dense is not None:
-            values = self.full.stiffness_values(x, ref)
             if self.sparse is not None:         # the shell's, on a large volume
                 N = 3 * self.embedding.volume.size
-                R = self.dense(values, np.zeros((N, N)))
-                return self._sparse_stiffness(self._all(alpha), lambda T: T.add_dense(R),
-                                              convex)
+                return self._sparse_stiffness(
+                    self._all(alpha), lambda T: T.add_dense(self.dense(
+                        self.full.stiffness_values(x, ref), np.zeros((N, N)))),
+                    convex, None if xref is None else self._all(xref).copy())
+            values = self.full.stiffness_values(x, ref)
 
             def reduce(R):
                 self.dense(values, R)
@@ -628,18 +629,31 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 K.PtAP(self.embedding.Gamma, self.K)
         return self.K
 
-    def _sparse_stiffness(self, A, yarns, convex=False):
+    def _sparse_stiffness(self, A, yarns, convex=False, ref=None):
         """Γᵀ K Γ on the fixed sparse pattern (``SparseTangent``): the yarn
         elements' part added by ``yarns(T)``, the shell's (``convex`` as in
-        ``stiffness``) and the contact set's added, every rank's summed."""
+        ``stiffness``) and the contact set's added, every rank's summed.
+        The convex tangent at the state (α, the MIP reference ``ref``) of
+        the last exact one is that one's values (this rank's) less the
+        shell's compressed stitches' part (``ShellStretch.add_compressed``):
+        the integrator asks for it right after the exact one, whose
+        factorisation found negative pivots."""
         T = self.sparse
         with EV_PTAP:
-            T.zero()
-            yarns(T)
-            if self.shell is not None:
-                self.shell.add_tangent(A, T, convex)
-            if self.contact is not None:
-                self.contact.add_hessian(A, T)
+            kept = self.exact_kept
+            if convex and kept is not None and np.array_equal(kept[0], A) and \
+                    (ref is None if kept[1] is None else np.array_equal(kept[1], ref)):
+                T.values[:] = kept[2]
+                self.shell.add_compressed(A, T, -1.0)
+            else:
+                T.zero()
+                yarns(T)
+                if self.shell is not None:
+                    self.shell.add_tangent(A, T, convex)
+                if self.contact is not None:
+                    self.contact.add_hessian(A, T)
+                self.exact_kept = (A.copy(), ref, T.values.copy()) \
+                    if self.shell is not None and not convex else None
             self.K = T.assemble()
         return self.K
 

@@ -175,9 +175,7 @@ class ShellStretch:
         positive semi-definite: a stitch whose yarn is compressed (ē_w < 0)
         softens by EA |ē_w| D_qᵀ D_q in every direction, which on a sleeve
         crumpled at a bending elbow makes the exact tangent indefinite."""
-        if self.placed is None or self.placed[0] is not T:
-            self.placed = (T, self._placement(T))
-        _, (pos, Jmap, scale, jpos) = self.placed
+        pos, Jmap, scale, jpos = self._placed(T)
         c = self._stress(A)
         if convex:
             c = np.maximum(c, 0.0)
@@ -187,6 +185,20 @@ class ShellStretch:
         t = self._strain(A)[0]
         J = (Jmap.T @ ((self.share / self.L2)[:, None] * t)).reshape(ng, nw, -1)
         T.add_at(jpos, np.matmul(J.transpose(0, 2, 1) * scale[:, None, :], J))
+
+    def add_compressed(self, A, T, scale=1.0):
+        """T's values += scale Σ_{c_w<0} c_w M_w ⊗ I₃ (``_patch_blocks``): the
+        compressed stitches' geometric stiffness, what ``add_tangent``
+        leaves out with ``convex``."""
+        pos = self._placed(T)[0]
+        blocks = self._patch_blocks(np.minimum(self._stress(A), 0.0))
+        T.add_at(pos, np.broadcast_to(scale * blocks[..., None], pos.shape))
+
+    def _placed(self, T):
+        """``_placement`` for T, laid out at the first call for T."""
+        if self.placed is None or self.placed[0] is not T:
+            self.placed = (T, self._placement(T))
+        return self.placed[1]
 
     def _placement(self, T):
         """(pos, Jmap, scale, jpos) of ``add_tangent`` for T: the positions
