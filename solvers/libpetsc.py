@@ -12,7 +12,7 @@ import numpy as np
 from petsc4py import PETSc
 
 __all__ = ["library", "Int", "check", "seqaij_values", "line_search",
-           "line_search_type", "set_line_search"]
+           "line_search_type", "set_line_search", "line_search_lambda"]
 
 Int = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
 
@@ -67,6 +67,15 @@ def set_line_search(snes, kind):
     before ``setFromOptions``, -<prefix>snes_linesearch_type overrides it."""
     check(library().SNESLineSearchSetType(_line_search(snes), kind.encode()),
           "SNESLineSearchSetType")
+
+
+def line_search_lambda(snes):
+    """The step length λ of the last line search of ``snes``
+    (SNESLineSearchGetLambda): the update it took is λ times Newton's."""
+    lam = ctypes.c_double()
+    check(library().SNESLineSearchGetLambda(_line_search(snes), ctypes.byref(lam)),
+          "SNESLineSearchGetLambda")
+    return lam.value
 
 
 def line_search_type(snes):

@@ -357,6 +357,58 @@ def test_a_line_search_that_finds_no_decrease_leaves_newton_to_full_steps():
     assert np.array_equal(ends[0], ends[1]) and np.abs(ends[0]).max() > 0
 
 
+def test_the_step_criterion_measures_newtons_step_not_the_update():
+    """The convergence test's step criterion measures Newton's step, the
+    update over the fraction of it taken (the line search's λ): an update
+    a thousand times below the step tolerance, taken as 1e-6 of Newton's
+    step, is not convergence; taken in full, or as half of a step within
+    the tolerance, it is; cut by the step filter (0) it never is."""
+    from solvers.integrators import step_convergence
+
+    class Saddle:
+        split = staticmethod(lambda y: (y, None))
+
+    class System:
+        yarn_move = staticmethod(lambda dy: 1e-15)
+
+    class Snes:
+        getSolutionUpdate = staticmethod(lambda: None)
+        getTolerances = staticmethod(lambda: (1e-7, 1e-50, 0.0, 60))
+
+    R = PETSc.SNES.ConvergedReason
+    for fraction, converged in ((1e-6, False), (1.0, True), (0.5, True), (0.0, False)):
+        test = step_convergence(Saddle(), lambda: 1e-12, System(), lambda: fraction)
+        assert test(Snes(), 0, (0.0, 0.0, 1.0)) == R.ITERATING
+        assert test(Snes(), 1, (0.0, 0.0, 0.5)) == (
+            R.CONVERGED_SNORM_RELATIVE if converged else R.ITERATING)
+
+
+def test_a_line_search_that_barely_moves_has_the_next_matrix_checked():
+    """Where Newton convexifies, a backtracking search that took λ < 1e-6
+    (Φ rose along the direction: a matrix indefinite after the step's first
+    definite one) has the next Newton matrix checked for definiteness
+    again; λ = 1 or 0.5 does not; the fraction taken is λ, 0 where the
+    step filter cut the update."""
+    import ctypes
+
+    from knitfem.contact.colliders import Sphere
+    from knitfem.contact.motion import Kinematic, Motion
+    from solvers.libpetsc import _line_search, check, library
+
+    turning = Kinematic(Sphere(np.array([0.0, -0.02, 0.0]), 0.005),
+                        Motion([0.0, 1.0], [[0, 0, 0], [0, 0.001, 0]]))
+    integ = BackwardEuler(falling_reduced((turning,)), 1e-3)
+    integ.convexify = True                  # as a shell-stretched model's
+    for lam, limited, checked in ((1.0, False, False), (0.5, False, False),
+                                  (0.5, True, False), (1e-9, False, True)):
+        check(library().SNESLineSearchSetLambda(_line_search(integ.snes),
+                                                ctypes.c_double(lam)),
+              "SNESLineSearchSetLambda")
+        integ.definite, integ.limited = True, limited
+        assert integ._taken() == (0.0 if limited else lam)
+        assert integ.definite is not checked
+
+
 def test_backtracking_reuses_the_objective_of_the_iterate_it_accepted():
     """A line search starts from the iterate the last one accepted, whose Φ
     is kept (a knit falling on a rising ball): the potential is evaluated
@@ -383,5 +435,5 @@ def test_backtracking_reuses_the_objective_of_the_iterate_it_accepted():
         calls.append(next(count))
         its.append(integ.snes.getIterationNumber())
     assert np.array_equal(ends[0], ends[1]) and min(its) > 2
-    # measured 773 against 1 233 (15 steps)
-    assert calls[0] < 0.7 * calls[1]
+    # measured 635 against 886 (15 steps)
+    assert calls[0] < 0.75 * calls[1]
