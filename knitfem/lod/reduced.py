@@ -476,12 +476,14 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
 
     # -- bodies: the contact set's when sampled, the full model's otherwise ---
     def begin_step(self, q, t=None):
+        self.exact_kept = None                  # friction lagged anew
         if self.contact is None:
             return super().begin_step(q, t)
         self.contact.begin(self._all(q), t)
         return False
 
     def move_bodies(self, t0, t1, q=None):
+        self.exact_kept = None                  # the bodies elsewhere
         if self.contact is None:
             return super().move_bodies(t0, t1)
         self.contact.move(t0, t1, None if q is None else self._all(q))

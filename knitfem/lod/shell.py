@@ -171,10 +171,11 @@ class ShellStretch:
         and J_gᵀ diag J_g by one GEMM.
 
         ``convex``: the compressed stitches' geometric stiffness dropped,
-        c_w replaced by max(c_w, 0) in the first sum (f_q = c_w s_q). Both sums are then
-        positive semi-definite: a stitch whose yarn is compressed (ē_w < 0)
-        softens by EA |ē_w| D_qᵀ D_q in every direction, which on a sleeve
-        crumpled at a bending elbow makes the exact tangent indefinite."""
+        c_w replaced by max(c_w, 0) in the first sum (f_q = c_w s_q). Both
+        sums are then positive semi-definite: a stitch whose yarn is
+        compressed (ē_w < 0) softens by EA |ē_w| D_qᵀ D_q in every direction,
+        which on a sleeve crumpled at a bending elbow makes the exact tangent
+        indefinite."""
         pos, Jmap, scale, jpos = self._placed(T)
         c = self._stress(A)
         if convex:
