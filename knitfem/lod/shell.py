@@ -137,8 +137,7 @@ class ShellStretch:
 
     def _forces(self, A):
         """t_q and f_q = EA ξ_w L_w ē_w W_q / (L_w L_q²) at every point."""
-        t, ebar = self._strain(A)
-        return t, self.EA * (self.xi * self.L * ebar)[self.win] * self.share / self.L2
+        return self._strain(A)[0], self._stress(A)[self.win] * self.share / self.L2
 
     def add_gradient(self, A, out, scale=1.0):
         """out (n, 3) += scale · ∂E_s/∂α = scale · Dᵀ (f t)."""
@@ -147,7 +146,7 @@ class ShellStretch:
 
     def _stress(self, A):
         """c_w = EA ξ_w L_w ē_w of every window: f_q = c_w W_q/(L_w L_q²)."""
-        return self.EA * self.xi * self.L * self._strain(A)[1]
+        return self.EA * (self.xi * self.L * self._strain(A)[1])
 
     def _patch_blocks(self, c):
         """Σ_{q over P} f_q D_qᵀ D_q = Σ_w c_w M_wP of every patch P of V,
@@ -178,10 +177,7 @@ class ShellStretch:
         indefinite."""
         pos, Jmap, scale, jpos = self._placed(T)
         c = self._stress(A)
-        if convex:
-            c = np.maximum(c, 0.0)
-        blocks = self._patch_blocks(c)
-        T.add_at(pos, np.broadcast_to(blocks[..., None], pos.shape))
+        self._add_patch_blocks(T, np.maximum(c, 0.0) if convex else c)
         ng, nw = scale.shape
         t = self._strain(A)[0]
         J = (Jmap.T @ ((self.share / self.L2)[:, None] * t)).reshape(ng, nw, -1)
@@ -191,9 +187,13 @@ class ShellStretch:
         """T's values += scale Σ_{c_w<0} c_w M_w ⊗ I₃ (``_patch_blocks``): the
         compressed stitches' geometric stiffness, what ``add_tangent``
         leaves out with ``convex``."""
+        self._add_patch_blocks(T, scale * np.minimum(self._stress(A), 0.0))
+
+    def _add_patch_blocks(self, T, c):
+        """T's values += Σ_w c_w M_w ⊗ I₃ (``_patch_blocks``), at the
+        positions laid out for T."""
         pos = self._placed(T)[0]
-        blocks = self._patch_blocks(np.minimum(self._stress(A), 0.0))
-        T.add_at(pos, np.broadcast_to(scale * blocks[..., None], pos.shape))
+        T.add_at(pos, np.broadcast_to(self._patch_blocks(c)[..., None], pos.shape))
 
     def _placed(self, T):
         """``_placement`` for T, laid out at the first call for T."""
