@@ -496,3 +496,21 @@ def test_a_sampled_checkpoint_is_not_continued_exact_unless_asked(tmp_path):
                  "-knit_restart_change", "sampling", "-knit_t_end", "0.1",
                  "-o", str(tmp_path / "c"))
     assert ok.returncode == 0, ok.stdout + ok.stderr
+
+
+def test_a_signal_while_the_directory_is_claimed_gives_its_lock_back(tmp_path, monkeypatch):
+    """An interruption after the lock is taken but before ``claim`` returns
+    (here as the temporaries are listed) removes the run's own lock: no
+    caller holds the directory yet to release it."""
+    from petsc4py import PETSc
+
+    from knitfem.run.output import LOCK, OutputDirectory
+
+    def interrupted(path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "listdir", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        OutputDirectory(PETSc.COMM_SELF, str(tmp_path / "out")).claim()
+    monkeypatch.undo()
+    assert (tmp_path / "out").is_dir() and not (tmp_path / "out" / LOCK).exists()

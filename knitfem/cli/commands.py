@@ -554,12 +554,12 @@ def run(comm):
     path = opts.getOutput(f"out/{name}", shown="out/SCENE")
     if opts.finish("knitfem run", RUN_HELP_FOOTER):
         return
-    out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
-    if out.note:
-        PETSc.Sys.Print(f"knitfem run: {out.note}")
     drawn = not static and (movie or any(ts <= t_end for ts in snapshots))
     painter = None
-    try:
+    out = OutputDirectory(comm, path, " ".join(sys.argv)).claim()
+    try:                                 # from the claim on, the lock is given back
+        if out.note:
+            PETSc.Sys.Print(f"knitfem run: {out.note}")
         if drawn and comm.rank == 0:     # its matplotlib import overlaps the set-up
             painter = Painter()
         try:

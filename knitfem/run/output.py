@@ -107,7 +107,7 @@ class OutputDirectory:
 
     def __init__(self, comm, path, command=""):
         self.comm, self.path, self.command = comm, path, command
-        self.owner, self.note = None, ""
+        self.owner, self.note, self.me = None, "", None
 
     def file(self, name):
         return os.path.join(self.path, name)
@@ -119,19 +119,23 @@ class OutputDirectory:
         if self.owner is not None:
             return self
         err = note = None
-        if self.comm.rank == 0:
-            try:
-                os.makedirs(self.path, exist_ok=True)
-                note = self._take()
-                for name in os.listdir(self.path):   # left by a run killed
-                    if name.startswith(".") and ".tmp" in name:
-                        os.remove(self.file(name))
-            except KnitError as e:
-                err = str(e)
-            except OSError as e:
-                err = (f"-o {self.path}: cannot write the output directory "
-                       f"({e.strerror}); choose a writable directory with -o DIR")
-        err, self.note = self.comm.tompi4py().bcast((err, note), root=0)
+        try:
+            if self.comm.rank == 0:
+                try:
+                    os.makedirs(self.path, exist_ok=True)
+                    note = self._take()
+                    for name in os.listdir(self.path):   # left by a run killed
+                        if name.startswith(".") and ".tmp" in name:
+                            os.remove(self.file(name))
+                except KnitError as e:
+                    err = str(e)
+                except OSError as e:
+                    err = (f"-o {self.path}: cannot write the output directory "
+                           f"({e.strerror}); choose a writable directory with -o DIR")
+            err, self.note = self.comm.tompi4py().bcast((err, note), root=0)
+        except BaseException:            # a signal while claiming: our lock back
+            self._remove_own_lock()
+            raise
         if err:
             raise KnitError(err)
         self.owner = True
@@ -151,13 +155,13 @@ class OutputDirectory:
                 os.fsync(f.fileno())
 
         tmp = self.file(f".lock.{me['host']}.{me['pid']}.tmp")
+        self.me = me                     # ours once linked (``_remove_own_lock``)
         try:
             write(tmp)
             note = None
             for _ in range(2):
                 try:
                     os.link(tmp, lock)
-                    self.me = me
                     return note
                 except FileExistsError:
                     note = self._stale(lock, me)
@@ -197,12 +201,18 @@ class OutputDirectory:
             return
         self.owner = None
         if self.comm.rank == 0:
-            try:
-                with open(self.file(LOCK)) as f:
-                    if json.load(f) == self.me:
-                        os.remove(self.file(LOCK))
-            except (OSError, ValueError):
-                pass
+            self._remove_own_lock()
+
+    def _remove_own_lock(self):
+        """Rank 0: remove the lock if it is this run's (another's stays)."""
+        if self.me is None:
+            return
+        try:
+            with open(self.file(LOCK)) as f:
+                if json.load(f) == self.me:
+                    os.remove(self.file(LOCK))
+        except (OSError, ValueError):
+            pass
 
     # -- rank-0 file work that every rank agrees on --------------------------
     def rank0(self, fn, *args):
