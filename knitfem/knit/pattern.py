@@ -194,7 +194,9 @@ class Jersey:
 
 def interlocks(P, cols, closed):
     """The contacts (``Jersey.contacts``) of courses with control points P
-    (a list of (n_f, 3)) of ``cols`` stitches each: (course k, s_a, s_b)."""
+    (a list of (n_f, 3)) of ``cols`` stitches each: (course k, s_a, s_b).
+    The grids are searched a course at a time, and every contact is refined
+    at once (``closest_approach``)."""
     side = np.array([-1.0, 1.0])[:, None]
     stitch = 2 * np.pi * np.arange(cols)[:, None, None]
     ga = ((stitch + side * np.linspace(0.3, 1.7, 15) - T0) / DT).reshape(-1, 15)
@@ -206,11 +208,12 @@ def interlocks(P, cols, closed):
         B = bspline.curve_points(P[k + 1], gb, closed=closed)
         d = np.linalg.norm(A[:, :, None] - B[:, None], axis=-1).reshape(len(ga), -1)
         ia, ib = np.divmod(np.argmin(d, axis=1), gb.shape[1])
-        a, b = closest_approach(P[k], P[k + 1], ga[n, ia], gb[n, ib], closed=closed)
-        sa.append(a)
-        sb.append(b)
-    return (np.repeat(np.arange(max(len(P) - 1, 0)), len(ga)), np.concatenate(sa),
-            np.concatenate(sb))
+        sa.append(ga[n, ia])
+        sb.append(gb[n, ib])
+    k = np.repeat(np.arange(max(len(P) - 1, 0)), len(ga))
+    a, b = closest_approach(P, k, k + 1, np.concatenate(sa), np.concatenate(sb),
+                            closed=closed)
+    return k, a, b
 
 
 @functools.lru_cache(maxsize=16)
@@ -252,23 +255,30 @@ def pattern_points(chart, knit, shape):
             for f in range(chart.rows)]
 
 
-def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
-    """Local minimisers of ½|P_a(s_a) − P_b(s_b)|² by Newton, vectorised,
+def closest_approach(P, ka, kb, sa, sb, iterations=30, closed=False):
+    """Local minimisers of ½|P_ka(s_a) − P_kb(s_b)|² by Newton, vectorised
+    over the pairs of curves (ka, kb) of the list of control points P,
     steps capped at a quarter segment (s read modulo the segments on closed
     curves, else kept in them), until the steps are at the round-off of
     the parameters (64 ulps of the largest: Newton's steps then wander at
     1e-13 on a long course, and quadratic convergence gets there in 5 or 6
     iterations)."""
-    na, nb = bspline.segments(len(Pa), closed), bspline.segments(len(Pb), closed)
-    tol = 64 * np.finfo(float).eps * max(na, nb, 1)
+    count = np.array([len(p) for p in P])
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    flat = np.concatenate(P) if len(P) else np.zeros((0, 3))
+    nseg = bspline.segments(count, closed)
+    na, nb = nseg[ka], nseg[kb]
+    tol = 64 * np.finfo(float).eps * max(nseg.max(initial=1), 1)
 
-    def at(P, s, nu):
-        return bspline.curve_points(P, s, nu, closed)
+    def at(k, s, nu):
+        j, u = bspline.locate(s, nseg[k], closed)
+        idx = start[k][:, None] + bspline.span(j, count[k][:, None], closed)
+        return np.einsum("qa,qai->qi", bspline.basis(u, nu), flat[idx])
 
     for _ in range(iterations):
-        D = at(Pa, sa, 0) - at(Pb, sb, 0)
-        A1, A2 = at(Pa, sa, 1), at(Pa, sa, 2)
-        B1, B2 = at(Pb, sb, 1), at(Pb, sb, 2)
+        D = at(ka, sa, 0) - at(kb, sb, 0)
+        A1, A2 = at(ka, sa, 1), at(ka, sa, 2)
+        B1, B2 = at(kb, sb, 1), at(kb, sb, 2)
         g = np.stack([np.sum(D * A1, -1), -np.sum(D * B1, -1)], -1)
         H = np.empty(g.shape + (2,))
         H[:, 0, 0] = np.sum(A1 * A1 + D * A2, -1)
@@ -278,7 +288,7 @@ def closest_approach(Pa, Pb, sa, sb, iterations=30, closed=False):
         sa, sb = sa - step[:, 0], sb - step[:, 1]
         sa, sb = (np.mod(sa, na), np.mod(sb, nb)) if closed else \
             (np.clip(sa, 0, na), np.clip(sb, 0, nb))
-        if np.abs(step).max() < tol:
+        if np.abs(step).max(initial=0.0) < tol:
             break
     return sa, sb
 
