@@ -63,26 +63,30 @@ class ShellStretch:
 
     def __init__(self, full, embedding, window=SEGMENTS_PER_STITCH, per_patch=None):
         vol, el = embedding.volume, full.elements
-        cols, vals = shell_rows(vol, embedding.params, el)
-        t = np.einsum("qk,qki->qi", vals, vol.flat[cols])
-        L2 = np.einsum("qi,qi->q", t, t)
-        W = np.tile(el.weights, el.ne) * np.sqrt(L2)
+        nq = len(el.weights)
         self.EA = full.material.EA
         lay = full.layout
         f, k = full.fabric.segments(lay.yarn_start, lay.yarn_end)
         nwin = -(-full.fabric.yarn_nseg[lay.yarn_start:lay.yarn_end] // window)
         first = np.concatenate([[0], np.cumsum(nwin)])[f - lay.yarn_start]
-        win = np.repeat(first + k // window, len(el.weights))
-        self.windows = int(win.max()) + 1 if el.ne else 0           # of the rank
-        L = np.bincount(win, W, minlength=self.windows)              # L_w
+        window_of = first + k // window                              # of each element
+        self.windows = int(window_of.max()) + 1 if el.ne else 0     # of the rank
         keep, xi = np.arange(self.windows), np.ones(self.windows)
         if per_patch is not None and el.ne:
-            keep, xi = stratified(patch_of(cols, win, self.windows), per_patch)
+            head = np.unique(window_of, return_index=True)[1]        # a window's first
+            cols = shell_rows(vol, embedding.params, el, head)[0][::nq]
+            keep, xi = stratified(patch_of(cols, np.arange(self.windows), self.windows),
+                                  per_patch)
         kept = np.full(self.windows, -1)
         kept[keep] = np.arange(len(keep))
-        q = np.flatnonzero(kept[win] >= 0)
-        cols, vals, self.L2, W = cols[q], vals[q], L2[q], W[q]
-        self.win, self.L, self.xi = kept[win[q]], L[keep], xi
+        e = np.flatnonzero(kept[window_of] >= 0)                     # the kept windows'
+        cols, vals = shell_rows(vol, embedding.params, el, e)
+        t = np.einsum("qk,qki->qi", vals, vol.flat[cols])
+        self.L2 = np.einsum("qi,qi->q", t, t)
+        W = np.tile(el.weights, len(e)) * np.sqrt(self.L2)
+        self.win = np.repeat(kept[window_of[e]], nq)
+        self.L = np.bincount(self.win, W, minlength=len(keep))      # L_w
+        self.xi = xi
         self.D = EmbeddingRows(cols, vals, vol.size,
                                compiled=full.kernels.kind == "compiled")
         self.share = W / self.L[self.win]                            # W_q / L_w
@@ -323,13 +327,14 @@ def stratified(patch, per_patch):
     return keep[order], xi[order]
 
 
-def shell_rows(volume, params, elements):
-    """Columns and values (npts, 32) of the rows D_q of ``elements``' Gauss
-    points, t_q = ∇P(s̄_q, ½) ξ̄'_q, from their control points' parameters
-    ``params`` (s₁, s₂, w₃); s₁ of a periodic volume read modulo its period
-    (an element's points unwrapped first)."""
+def shell_rows(volume, params, elements, e=slice(None)):
+    """Columns and values (npts, 32) of the rows D_q of the Gauss points of
+    ``elements`` (those of the indices ``e``), t_q = ∇P(s̄_q, ½) ξ̄'_q, from
+    their control points' parameters ``params`` (s₁, s₂, w₃); s₁ of a
+    periodic volume read modulo its period (an element's points unwrapped
+    first)."""
     el = elements
-    xi = np.stack(params, axis=-1)[el.conn]                      # (ne, 4, 3)
+    xi = np.stack(params, axis=-1)[el.conn[e]]                   # (ne, 4, 3)
     if volume.periodic:
         n = volume.domain[0]
         ref = xi[:, :1, 0]
