@@ -22,7 +22,7 @@ PAIRS = Extension("knitfem.contact._pairs", ["knitfem/contact/_pairs.pyx"],
 BODIES = Extension("knitfem.contact._bodies", ["knitfem/contact/_bodies.pyx"],
                    extra_compile_args=["-O3"])
 ROWS = Extension("knitfem.lod._rows", ["knitfem/lod/_rows.pyx"],
-                 extra_compile_args=["-O3"])
+                 extra_compile_args=["-O3"], libraries=["blas"])
 
 setup(
     name="knitfem",

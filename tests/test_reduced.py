@@ -253,15 +253,23 @@ def test_the_convex_tangent_after_the_exact_one_is_assembled_afresh_s():
 
 
 def test_placed_parts_equal_the_explicit_products():
-    """The sampled elements' PatchProduct and the shell's placed parts equal
-    Γ_Sᵀ K_S Γ_S by scipy's products and the shell's ``hessian_parts`` (the
-    binary-search placement) to round-off."""
+    """The sampled elements' placed products (the compiled
+    ``GroupedTangent.add_into`` and numpy's ``PatchProduct``) and the
+    shell's placed parts equal Γ_Sᵀ K_S Γ_S by scipy's products and the
+    shell's ``hessian_parts`` (the binary-search placement) to round-off."""
+    from knitfem.lod.sparse_tangent import PatchProduct
+
     red = bodied()
     a = pressed_state(red)
     tangent_of(red, a, sparse=True)
-    T, A = red.sparse, red._all(a).copy()
-    for new, old in ((lambda: red._yarns(T).add(red.sampled.hessian_values(A, None)),
-                      lambda: T.add(red.sampled.sparse_tangent(A))),
+    T, A, s = red.sparse, red._all(a).copy(), red.sampled
+    by_patch = PatchProduct(T, s.indptr3, s.indices3, red.embedding.cols[s.points],
+                            red.embedding.vals[s.points])
+    assert s.grouped is not None
+    for new, old in ((lambda: s.grouped.add_into(s.hessian_values(A, None), T),
+                      lambda: T.add(s.sparse_tangent(A))),
+                     (lambda: by_patch.add(s.hessian_values(A, None)),
+                      lambda: T.add(s.sparse_tangent(A))),
                      (lambda: red.shell.add_tangent(A, T),
                       lambda: [T.add(part) for part in red.shell.hessian_parts(A)])):
         T.zero()
@@ -270,7 +278,7 @@ def test_placed_parts_equal_the_explicit_products():
         T.zero()
         old()
         assert np.abs(T.values).max() > 0
-        # measured 4.8e-16 (yarns) and 2.6e-16 (shell) of the largest
+        # measured 4.8e-16 (yarns, either product) and 2.6e-16 (shell) of the largest
         assert np.allclose(placed, T.values, rtol=0, atol=3e-15 * np.abs(T.values).max())
     assert T.outside == 0
 
@@ -398,11 +406,13 @@ def test_contact_tangent_of_a_sleeve_sums_its_patches_as_the_explicit_product():
     T.zero()
     T.add(G3.T @ (K @ G3))
     ref = T.values.copy()
-    T.zero()
-    c.add_hessian(A, T)
-    assert np.abs(ref).max() > 0 and T.outside == 0
-    # measured 1.0e-15 of the largest
-    assert np.allclose(T.values, ref, rtol=0, atol=3e-15 * np.abs(ref).max())
+    for compiled in (True, False):              # quadrature_product, numpy's loop
+        T.compiled = compiled
+        T.zero()
+        c.add_hessian(A, T)
+        assert np.abs(ref).max() > 0 and T.outside == 0
+        # measured 1.0e-15 of the largest (either)
+        assert np.allclose(T.values, ref, rtol=0, atol=3e-15 * np.abs(ref).max())
 
 
 def test_the_guess_carries_a_sleeve_rigidly_with_the_only_moving_body(monkeypatch):

@@ -13,16 +13,21 @@ scipy's sparse product with several vectors loops over them at every entry.
 ``knitfem.lod.rows`` keeps scipy's product as the tested reference. And
 ``add_at``, values[p_i] += x_i (positions past the end dropped), for the
 reduced tangent's values (``sparse_tangent``), where numpy's bincount
-fills and adds an array of the values' length.
+fills and adds an array of the values' length; ``quadrature_product``,
+the contact's Σ_q (c_q c_qᵀ) ⊗ H_q a group of elements at a time
+(``sparse_tangent.QuadratureProduct``, whose numpy loop is its reference).
 
 Built by ``pip install -e .`` (setup.py).
 """
 
 from libc.stdint cimport int64_t
+from cython.view cimport array as cvarray
+
+from knitfem.blas cimport dgemm_
 
 # Raised whenever a kernel's arguments change: knitfem.lod.rows refuses an
 # extension built from an older source (run make setup).
-VERSION = 1
+VERSION = 2
 
 
 def apply(const int64_t[:, ::1] cols, const double[:, ::1] vals,
@@ -75,3 +80,55 @@ def add_at(const int64_t[::1] pos, const double[::1] x, double[::1] values):
             p = pos[i]
             if p < n:
                 values[p] += x[i]
+
+
+def quadrature_product(const double[:, ::1] C, const double[:, ::1] H6,
+                       const int64_t[::1] bounds, const int64_t[::1] width,
+                       const int64_t[::1] first, const int64_t[::1] pos,
+                       double[::1] values):
+    """values[pos] += Σ_q c_q c_qᵀ ⊗ H_q, a group at a time.
+
+    Group g is the quadrature points (rows) bounds[g] to bounds[g + 1] of C
+    (their weights on the group's w = width[g] columns, the first w of a
+    row) and of H6 (the entries i ≤ j of their symmetric 3 × 3 blocks, in
+    the order (0,0), (0,1), (0,2), (1,1), (1,2), (2,2)). With Z_q = c_q ⊗ H6_q
+    and V = C_gᵀ Z (dgemm), V[k, 6l + s] goes to pos[first[g] + 9 (k w + l)
+    + s] and, for the three pairs i < j, V[l, 6k + (1, 2, 4)] to the slots
+    s = 6, 7, 8 (the entries i > j, transposed); positions at or past
+    len(values) are dropped."""
+    cdef Py_ssize_t ng = width.shape[0], wmax = C.shape[1], n = values.shape[0]
+    cdef Py_ssize_t g, q, k, l, s, maxrows = 0
+    cdef int w, m, rows, ldc = <int>wmax
+    cdef int64_t at, p
+    cdef double one = 1.0, zero = 0.0, c
+    cdef int lower[3]
+    lower[:] = [1, 2, 4]
+    for g in range(ng):
+        maxrows = max(maxrows, bounds[g + 1] - bounds[g])
+    cdef double[::1] Z = cvarray((max(maxrows * 6 * wmax, 1),), sizeof(double), "d")
+    cdef double[::1] V = cvarray((max(6 * wmax * wmax, 1),), sizeof(double), "d")
+    with nogil:
+        for g in range(ng):
+            w = <int>width[g]
+            m = 6 * w
+            rows = <int>(bounds[g + 1] - bounds[g])
+            if rows == 0:
+                continue
+            for q in range(rows):
+                for k in range(w):
+                    c = C[bounds[g] + q, k]
+                    for s in range(6):
+                        Z[q * m + 6 * k + s] = c * H6[bounds[g] + q, s]
+            # V (w × 6w, row-major) = C_gᵀ Z: column-major Vᵀ = Zᵀ C_g
+            dgemm_("N", "T", &m, &w, &rows, &one, &Z[0], &m,
+                   &C[bounds[g], 0], &ldc, &zero, &V[0], &m)
+            for k in range(w):
+                for l in range(w):
+                    at = first[g] + 9 * (k * w + l)
+                    for s in range(9):
+                        p = pos[at + s]
+                        if p < n:
+                            if s < 6:
+                                values[p] += V[k * m + 6 * l + s]
+                            else:
+                                values[p] += V[l * m + 6 * k + lower[s - 6]]

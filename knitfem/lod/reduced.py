@@ -603,7 +603,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             A = self._all(alpha)
             if self.sparse is not None:
                 return self._sparse_stiffness(
-                    A, lambda T: self._yarns(T).add(self.sampled.hessian_values(A, ref)),
+                    A, lambda T: self._add_yarns(T, self.sampled.hessian_values(A, ref)),
                     convex, ref)
 
             def reduce(R):
@@ -666,16 +666,21 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             self.K = T.assemble()
         return self.K
 
-    def _yarns(self, T):
-        """The sampled elements' Γ_Sᵀ K_S Γ_S into T (``PatchProduct``), laid
-        out at the first call."""
+    def _add_yarns(self, T, values):
+        """T's values += the sampled elements' Γ_Sᵀ K_S Γ_S, K_S given by its
+        ``values``: by the compiled ``GroupedTangent.add_into``, or by
+        ``PatchProduct`` (numpy), laid out at the first call."""
         from knitfem.lod.sparse_tangent import PatchProduct
 
+        s = self.sampled
+        if s.grouped is not None:
+            s.grouped.add_into(values, T)
+            return
         if self.yarns is None or self.yarns.T is not T:
-            s, emb = self.sampled, self.embedding
+            emb = self.embedding
             self.yarns = PatchProduct(T, s.indptr3, s.indices3, emb.cols[s.points],
                                       emb.vals[s.points])
-        return self.yarns
+        self.yarns.add(values)
 
     def _dense_stiffness(self, reduce):
         """Γᵀ K Γ into R by ``reduce(R)`` over this rank's yarns, every rank's

@@ -18,7 +18,7 @@ from knitfem.yarn.kernels import compiled_module
 
 __all__ = ["EmbeddingRows", "add_at"]
 
-VERSION = 1                 # of knitfem/lod/_rows.pyx, which this module calls
+VERSION = 2                 # of knitfem/lod/_rows.pyx, which this module calls
 
 
 class EmbeddingRows:

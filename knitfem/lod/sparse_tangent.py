@@ -9,11 +9,13 @@ laid out once; a Newton iteration zeroes its values, adds each part's
 contribution and hands PETSc the values in place: the AIJ matrix keeps its
 nonzero pattern, so a sparse factorisation (MUMPS, by the ``reduced_``
 options) keeps its symbolic phase. A part whose entries keep their places
-(the sampled elements' Γ_Sᵀ K_S Γ_S by ``PatchProduct``, the shell's) finds
-their positions in the pattern once (``positions``) and adds its values
-there by one ``bincount`` a call (``add_at``); the contact with bodies,
-whose points within the gap change, keeps the positions of each group of
-volume patches it has met (``QuadratureProduct``). A scipy matrix is
+(the sampled elements' Γ_Sᵀ K_S Γ_S, the shell's) finds their positions in
+the pattern once (``positions``) and adds its values there (``add_at``):
+the sampled elements by the compiled ``GroupedTangent.add_into``, or by
+``PatchProduct`` (numpy, the reference); the contact with bodies, whose
+points within the gap change, keeps the positions of each group of volume
+patches it has met (``QuadratureProduct``, its GEMMs by a compiled loop or
+by numpy's). A scipy matrix is
 placed by a binary search of its entries' keys (row · 3n + column) among
 the pattern's (``add``: the reference the placed parts are tested
 against).
@@ -23,8 +25,9 @@ import numpy as np
 from petsc4py import PETSc
 from scipy import sparse
 
-from knitfem.lod.rows import add_at
+from knitfem.lod.rows import VERSION as ROWS_VERSION, add_at
 from knitfem.model.assembly import create_aij
+from knitfem.yarn.kernels import compiled_module
 
 __all__ = ["DenseValues", "PatchProduct", "QuadratureProduct", "SparseTangent",
            "patches", "scalar_pattern"]
@@ -157,6 +160,7 @@ class DenseValues:
             raise ValueError("DenseValues: R must be a C-ordered array (its entries "
                              "are added in place through a flat view)")
         self.R, self.N = R, len(R)
+        self.values = R.reshape(-1)              # a view: added in place
 
     @property
     def nnz(self):
@@ -262,9 +266,12 @@ class QuadratureProduct:
         Σ_q c_q (c_q ⊗ H_q)ᵀ = C_Uᵀ Z,   Z_q = c_q ⊗ vec H_q,
 
     C_U the group's c_q over U, (points, |U|), Z over the six entries i ≤ j
-    of the symmetric H_q (the others are their transposes). The positions
-    of a group's entries in ``T`` are found at its first call and kept (by
-    U). ``patched``: ``patches(cols)``, if the caller has it.
+    of the symmetric H_q (the others are their transposes), the points
+    outside the gap (H_q = 0) left out. The positions of a group's entries
+    in ``T`` are found at its first call and kept (by U). The groups are
+    looped over by ``_rows.quadrature_product`` where ``T.compiled``, else
+    in numpy (the reference). ``patched``: ``patches(cols)``, if the caller
+    has it.
     """
 
     def __init__(self, T, cols, vals, B, patched=None):
@@ -325,8 +332,17 @@ class QuadratureProduct:
         C = np.einsum("qa,eak->eqk", self.B, Cp.reshape(m, 4, w_max))   # (m, nq, w)
         bounds = np.searchsorted(group, np.arange(len(groups) + 1))
         ends = np.cumsum(9 * width**2)
-        val = np.empty(ends[-1])
         H6 = H.reshape(m, -1, 9)[:, :, UPPER]                         # H_q symmetric
+        pos = self._placed(groups, columns, first, width)
+        if self.T.compiled:
+            H6 = H6.reshape(-1, 6)
+            live = np.flatnonzero(H6.any(axis=1))     # points outside the gap add 0
+            rows = np.searchsorted(live, len(self.B) * bounds)
+            compiled_module("knitfem.lod._rows", ROWS_VERSION).quadrature_product(
+                C.reshape(-1, w_max)[live], H6[live], rows, width.astype(np.int64),
+                ends - 9 * width**2, pos, self.T.values)
+            return
+        val = np.empty(ends[-1])
         for g, (s, t) in enumerate(zip(bounds[:-1], bounds[1:])):
             w = width[g]
             Cg = C[s:t, :, :w].reshape(-1, w)
@@ -335,7 +351,7 @@ class QuadratureProduct:
             out = val[ends[g] - 9 * w * w:ends[g]].reshape(w, w, 9)
             out[:, :, :6] = V
             out[:, :, 6:] = V[:, :, LOWER].transpose(1, 0, 2)
-        self.T.add_at(self._placed(groups, columns, first, width), val)
+        self.T.add_at(pos, val)
 
     def _placed(self, groups, columns, first, width):
         """The positions of ``add``'s values for these groups, laid end to

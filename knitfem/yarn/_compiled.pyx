@@ -26,9 +26,11 @@ from libc.string cimport memcpy, memset
 
 from cython.view cimport array as cvarray
 
+from knitfem.blas cimport dgemm_
+
 # Raised whenever a kernel's arguments change: knitfem.yarn.kernels refuses an
 # extension built from an older source (run make setup).
-VERSION = 4
+VERSION = 5
 
 
 cdef inline void cross(const double *a, const double *b, double *c) nogil:
@@ -304,18 +306,6 @@ def hessian_values(const double[:, ::1] x, const int64_t[:, ::1] conn,
                             v[stride[e, a] * i + j] += K[12 * (3 * a + i) + 3 * b + j]
 
 
-cdef extern from *:
-    """
-    void dgemm_(const char *, const char *, const int *, const int *,
-                const int *, const double *, const double *, const int *,
-                const double *, const int *, const double *, double *,
-                const int *);
-    """
-    void dgemm_(const char *transa, const char *transb, const int *m,
-                const int *n, const int *k, const double *alpha, const double *a,
-                const int *lda, const double *b, const int *ldb,
-                const double *beta, double *c, const int *ldc) nogil
-
 
 DEF CHUNK = 64             # points whose rows Y are formed, then multiplied
 
@@ -363,6 +353,26 @@ cdef void chunk_rows(const double *values, const int64_t *indptr,
                         y[6 * gmap[cq[t]] + ij] += kv[ij] * gv
 
 
+cdef void group_product(Py_ssize_t g, const double *values, const int64_t *indptr,
+                        const int64_t *neighbour, const int64_t *gcols,
+                        const double *gvals, int nw, const int64_t *order,
+                        const int64_t *start, const int32_t *gmap, int nvolume,
+                        int w, double *Y, double *G, double *B) nogil:
+    """B (nw × 6w, row-major) = Σ_p Γ̃_pᵀ Y_p over group g's points (the
+    R^{ij}[key, reach] of ``reduce_tangent``), CHUNK points at a time."""
+    cdef int m = 6 * w, count
+    cdef double one = 1.0
+    cdef double beta = 0.0
+    cdef int64_t b0
+    for b0 in range(start[g], start[g + 1], CHUNK):
+        count = <int>min(CHUNK, start[g + 1] - b0)
+        chunk_rows(values, indptr, neighbour, gcols, gvals, nw, gmap + g * nvolume,
+                   w, w == nw, order + b0, count, Y, G)
+        # B (nw × m, row-major) (+)= Gᵀ Y: column-major Bᵀ = Yᵀ G
+        dgemm_("N", "T", &m, &nw, &count, &one, Y, &m, G, &nw, &beta, B, &m)
+        beta = 1.0
+
+
 def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
                    const int64_t[::1] neighbour, const int64_t[:, ::1] gcols,
                    const double[:, ::1] gvals, const int64_t[::1] order,
@@ -387,10 +397,8 @@ def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
     """
     cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1]
     cdef Py_ssize_t nv = out.shape[0] // 3, maxw = reach.shape[1]
-    cdef Py_ssize_t g, c, d, u, b0
-    cdef int w, m, count, inw = <int>nw
-    cdef double one = 1.0
-    cdef double beta
+    cdef Py_ssize_t g, c, d, u
+    cdef int w, m
     cdef double[:, :, ::1] R6 = cvarray((nv, nv, 6), sizeof(double), "d")
     cdef double[::1] Y = cvarray((CHUNK * 6 * maxw,), sizeof(double), "d")
     cdef double[::1] G = cvarray((CHUNK * nw,), sizeof(double), "d")
@@ -405,16 +413,9 @@ def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
         for g in range(ng):
             w = <int>width[g]
             m = 6 * w
-            beta = 0.0
-            for b0 in range(start[g], start[g + 1], CHUNK):
-                count = <int>min(CHUNK, start[g + 1] - b0)
-                chunk_rows(&values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
-                           &gvals[0, 0], inw, &gmap[g, 0], w, w == nw,
-                           &order[b0], count, &Y[0], &G[0])
-                # B (nw × m, row-major) (+)= Gᵀ Y: column-major Bᵀ = Yᵀ G
-                dgemm_("N", "T", &m, &inw, &count, &one, &Y[0], &m, &G[0], &inw,
-                       &beta, &B[0], &m)
-                beta = 1.0
+            group_product(g, &values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
+                          &gvals[0, 0], <int>nw, &order[0], &start[0], &gmap[0, 0],
+                          <int>gmap.shape[1], w, &Y[0], &G[0], &B[0])
             for c in range(nw):
                 for u in range(w):
                     for ij in range(6):
@@ -424,3 +425,46 @@ def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
                 for ij in range(6):
                     out[3 * c + pair_i[ij], 3 * d + pair_j[ij]] = R6[c, d, ij]
                     out[3 * d + pair_j[ij], 3 * c + pair_i[ij]] = R6[c, d, ij]
+
+
+def reduce_tangent_into(const double[::1] values, const int64_t[::1] indptr,
+                        const int64_t[::1] neighbour, const int64_t[:, ::1] gcols,
+                        const double[:, ::1] gvals, const int64_t[::1] order,
+                        const int64_t[::1] start, const int64_t[::1] width,
+                        const int32_t[:, ::1] gmap, const int64_t[::1] first,
+                        const int64_t[::1] pos, double[::1] out):
+    """out[pos] += the entries of Γᵀ K Γ, group by group (the arguments as
+    ``reduce_tangent``'s): group g's R^{ij}_{cd} (c its key's k-th column,
+    d its reach's u-th) goes to pos[first[g] + 9 (k w + u) + s], s < 6 its
+    place (3c + i, 3d + j) for the pair ij, and s = 6, 7, 8 the transposed
+    place (3d + j, 3c + i) of the pairs i < j (0,1), (0,2), (1,2); positions
+    at or past len(out) are dropped."""
+    cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1]
+    cdef Py_ssize_t n = out.shape[0], maxw = 0
+    cdef Py_ssize_t g, c, u
+    cdef int w, m
+    cdef int64_t at, p
+    cdef double v
+    cdef int ij
+    cdef int lower[3]
+    lower[:] = [1, 2, 4]
+    for g in range(ng):
+        maxw = max(maxw, width[g])
+    cdef double[::1] Y = cvarray((CHUNK * 6 * max(maxw, 1),), sizeof(double), "d")
+    cdef double[::1] G = cvarray((CHUNK * nw,), sizeof(double), "d")
+    cdef double[::1] B = cvarray((nw * 6 * max(maxw, 1),), sizeof(double), "d")
+    with nogil:
+        for g in range(ng):
+            w = <int>width[g]
+            m = 6 * w
+            group_product(g, &values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
+                          &gvals[0, 0], <int>nw, &order[0], &start[0], &gmap[0, 0],
+                          <int>gmap.shape[1], w, &Y[0], &G[0], &B[0])
+            for c in range(nw):
+                for u in range(w):
+                    at = first[g] + 9 * (c * w + u)
+                    for ij in range(9):
+                        v = B[c * m + 6 * u + (ij if ij < 6 else lower[ij - 6])]
+                        p = pos[at + ij]
+                        if p < n:
+                            out[p] += v

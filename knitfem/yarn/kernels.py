@@ -25,7 +25,7 @@ from knitfem.errors import KnitError
 __all__ = ["KINDS", "yarn_kernels", "compiled_module"]
 
 KINDS = ("compiled", "numpy")
-VERSION = 4                 # of knitfem/yarn/_compiled.pyx, which this module calls
+VERSION = 5                 # of knitfem/yarn/_compiled.pyx, which this module calls
 
 
 def compiled_module(name="knitfem.yarn._compiled", version=VERSION):
