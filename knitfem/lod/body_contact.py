@@ -43,13 +43,14 @@ import numpy as np
 from scipy import sparse
 
 from knitfem.contact.colliders import Barrier
+from knitfem.contact.motion import moving
 from knitfem.lod.rows import EmbeddingRows
 from knitfem.lod.sparse_tangent import QuadratureProduct, patches
 
 __all__ = ["ActiveContact"]
 
-PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-"""The pairs of an element's four control points."""
+PAIRS = np.array(((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))).T
+"""The pairs of an element's four control points, (2, 6)."""
 
 
 def element_patches(patch, spread):
@@ -113,16 +114,27 @@ class ActiveContact:
         self.allowance, self.step_h = 2 * self.radius, None
         self.active = np.zeros(0, dtype=int)
         self.barrier, self.start, self.window, self.refusals = None, None, None, 0
+        self.bound_kept = None
         self._use(np.zeros(0, dtype=int))
 
     # -- the set ---------------------------------------------------------------
     def _bound(self, X):
-        """min_a φ(p_a) − d_e − r of every element at control points X."""
+        """min_a φ(p_a) − d_e − r of every element at control points X, the
+        bodies as they are posed (kept for the last X and poses: a step's
+        ``missed`` and the next step's ``move`` ask at the same state). Not
+        to be written to."""
+        pose = [(b.R.tobytes(), b.s.tobytes()) if moving(b) else None
+                for b in self.bodies]
+        kept = self.bound_kept
+        if kept is not None and kept[1] == pose and np.array_equal(kept[0], X):
+            return kept[2]
         phi = np.min([self.barrier.phi(body, X) for body in self.bodies], axis=0)
-        P = X[self.el.conn]                                          # (ne, 4, 3)
-        d = np.sqrt(np.max([np.einsum("ei,ei->e", u, u) for u in (
-            P[:, a] - P[:, b] for a, b in PAIRS)], axis=0))
-        return phi[self.el.conn].min(axis=1) - d - self.radius
+        P = np.take(X, self.el.conn.T, axis=0)                      # (4, ne, 3)
+        D = P[PAIRS[0]] - P[PAIRS[1]]
+        d = np.sqrt(np.einsum("pei,pei->pe", D, D).max(axis=0, initial=0.0))
+        bound = phi[self.el.conn].min(axis=1, initial=np.inf) - d - self.radius
+        self.bound_kept = (np.array(X), pose, bound)
+        return bound
 
     def _use(self, e):
         """The barrier on the elements e (sorted)."""
@@ -174,7 +186,7 @@ class ActiveContact:
         are now); the allowances are then doubled and the set formed again
         at the next ``move``. Else each element's allowance is twice its
         move in the step, at least 2 r."""
-        bound = self._bound(self.G @ alpha1)
+        bound = self._bound(self.G @ alpha1).copy()
         bound[self.active] = np.inf
         move = np.linalg.norm(self.G @ (alpha1 - alpha0), axis=1)[self.el.conn].max(axis=1)
         if bound.min(initial=np.inf) >= self.gap:

@@ -100,8 +100,8 @@ class ShellStretch:
 
     def _pair_matrices(self, patch):
         """The constant M_wP = Σ_{q∈w over P} g_q D_qᵀ D_q of every (window,
-        patch) pair, g_q = W_q/(L_w L_q²), as upper triangles (pairs,
-        k(k+1)/2), and the sparse sum over a patch's pairs (``_patch_blocks``),
+        patch) pair, g_q = W_q/(L_w L_q²), flat (pairs, k²), and the sparse
+        sum over a patch's pairs (``_patch_blocks``),
         from each point's ``patch``: f_q = c_w g_q, c_w = EA ξ_w L_w ē_w, so
         Σ_{q over P} f_q D_qᵀ D_q = Σ_w c_w M_wP."""
         nwin, k = len(self.L), self.cols.shape[1]
@@ -114,9 +114,8 @@ class ShellStretch:
         rows[pair[order], slot] = self.vals[order]
         g = np.zeros(rows.shape[:2])
         g[pair[order], slot] = (self.share / self.L2)[order]
-        self.upper = np.triu_indices(k)
         M = np.matmul(rows.transpose(0, 2, 1), rows * g[..., None])
-        self.pair_matrices = M[:, self.upper[0], self.upper[1]]
+        self.pair_matrices = M.reshape(len(keys), k * k)
         self.pair_window = keys % nwin
         npatch = len(self.keys)
         self.pair_sum = sparse.csr_matrix(
@@ -155,14 +154,10 @@ class ShellStretch:
     def _patch_blocks(self, c):
         """Σ_{q over P} f_q D_qᵀ D_q = Σ_w c_w M_wP of every patch P of V,
         (patches, 32, 32) on its columns ``keys`` (``_pair_matrices``): one
-        sparse product of the windows' c_w with the pairs' upper triangles."""
+        sparse product of the windows' c_w with the pairs' matrices."""
         self.pair_sum.data[:] = c[self.pair_window]
-        upper = self.pair_sum @ self.pair_matrices
         k = self.cols.shape[1]
-        blocks = np.empty((len(upper), k, k))
-        blocks[:, self.upper[0], self.upper[1]] = upper
-        blocks[:, self.upper[1], self.upper[0]] = upper
-        return blocks
+        return (self.pair_sum @ self.pair_matrices).reshape(-1, k, k)
 
     def add_tangent(self, A, T, convex=False):
         """T's values (a ``SparseTangent``) += ∂²E_s/∂α² (``hessian_parts``),
@@ -197,7 +192,7 @@ class ShellStretch:
         """T's values += Σ_w c_w M_w ⊗ I₃ (``_patch_blocks``), at the
         positions laid out for T."""
         pos = self._placed(T)[0]
-        T.add_at(pos, np.broadcast_to(self._patch_blocks(c)[..., None], pos.shape))
+        T.add_at(pos, np.repeat(self._patch_blocks(c), 3))     # ⊗ I₃: (P, k, k, 3)
 
     def _placed(self, T):
         """``_placement`` for T, laid out at the first call for T."""

@@ -266,11 +266,11 @@ class QuadratureProduct:
         Σ_q c_q (c_q ⊗ H_q)ᵀ = C_Uᵀ Z,   Z_q = c_q ⊗ vec H_q,
 
     C_U the group's c_q over U, (points, |U|), Z over the six entries i ≤ j
-    of the symmetric H_q (the others are their transposes), the points
-    outside the gap (H_q = 0) left out. The positions of a group's entries
-    in ``T`` are found at its first call and kept (by U). The groups are
-    looped over by ``_rows.quadrature_product`` where ``T.compiled``, else
-    in numpy (the reference). ``patched``: ``patches(cols)``, if the caller
+    of the symmetric H_q (the others are their transposes). The positions
+    of a group's entries in ``T`` are found at its first call and kept (by
+    U). The groups are looped over by ``_rows.quadrature_product`` where
+    ``T.compiled`` (the points outside the gap, H_q = 0, left out), else in
+    numpy (the reference). ``patched``: ``patches(cols)``, if the caller
     has it.
     """
 
