@@ -13,8 +13,9 @@ and the element sums G_{e,ai} = Σ_{q,r} D_{qra} gy_{ri},
 K_{e,ai,bj} = Σ_{q,r,s} D_{qra} Hy_{ri,sj} D_{qsb} are added straight into
 the caller's arrays: the gradient into control-point rows, the Hessian into
 CSR values through each element entry's slot, and the reduced Hessian
-Γᵀ K Γ into a dense matrix. Nothing here allocates per call except small
-stack arrays; no Python object is touched inside the loops.
+Γᵀ K Γ into a dense matrix (``reduce_tangent``) or at given positions of a
+sparse one's values (``reduce_tangent_into``). Nothing here allocates per
+call except its work arrays; no Python object is touched inside the loops.
 
 Built by ``pip install -e .`` (setup.py); ``knitfem.yarn.kernels`` chooses between
 these kernels and the numpy reference.
