@@ -420,6 +420,22 @@ def test_reduced_drape_defaults_to_the_shell_settling_in_backward_euler(tmp_path
     assert summary["steps"] == 3 and summary["integrator"] == "implicit"
 
 
+def test_threads_form_the_same_sampled_sleeve_and_the_header_says_how_many(tmp_path):
+    """-knit_threads 2 forms a sampled sleeve's parts side by side: the same
+    trajectory to the bit as on one thread, and the header says so."""
+    out = {}
+    for threads in ("1", "2"):
+        p = knitfem("run", "-knit_scene", "sleeve", "-knit_rows", "4", "-knit_cols", "8",
+                    "-knit_model", "reduced", "-knit_sampling", "quadrature",
+                    "-knit_t_end", "0.02", "-knit_snapshots", "", "-knit_threads", threads,
+                    "-o", str(tmp_path / threads))
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert ("2 threads a rank, 1 rank(s)" in p.stdout) == (threads == "2")
+        out[threads] = json.load(open(tmp_path / threads / "summary.json"))
+    assert out["1"]["newton_iterations"] == out["2"]["newton_iterations"] > 0
+    assert out["1"]["centroid"] == out["2"]["centroid"]
+
+
 def test_shell_stretch_beyond_the_dense_tangent_needs_compiled_kernels(tmp_path):
     p = knitfem("run", "-knit_model", "reduced", "-knit_stretch", "shell",
                 "-knit_lod", "11,11", "-knit_kernels", "numpy", "-knit_rows", "3",

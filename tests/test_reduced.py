@@ -233,6 +233,38 @@ def test_sparse_reduced_tangent_equals_the_dense_one(sampled):
     assert red.contact is None or len(red.contact.active) > 0
 
 
+def test_parts_side_by_side_give_the_same_bits_as_one_after_the_other():
+    """The sampled model's energy, forces and sparse tangent formed on two
+    threads (``lod.parts``) equal, to the bit, those formed on one: each
+    part into its own output, added in a fixed order."""
+    from knitfem.lod.parts import Parts
+
+    red = bodied()
+    a = pressed_state(red)
+    out = {}
+    for threads in (1, 2):
+        red.parts = Parts(threads)
+        Q, v = a.duplicate(), a.duplicate()
+        v.zeroEntries()
+        red.forces(a, v, Q)
+        out[threads] = (red.potential(a), Q.getArray().copy(),
+                        tangent_of(red, a, sparse=True))
+        red.parts.close()
+    (E1, Q1, K1), (E2, Q2, K2) = out[1], out[2]
+    assert np.abs(K1).max() > 0 and np.abs(Q1).max() > 0
+    assert E1 == E2 and np.array_equal(Q1, Q2) and np.array_equal(K1, K2)
+
+
+def test_a_rank_alone_on_its_machine_takes_the_cores_it_may_run_on():
+    """``-knit_threads``'s default: the process's cores over the ranks on
+    its machine (here one rank of COMM_SELF)."""
+    import os
+
+    from knitfem.lod.parts import default_threads
+
+    assert default_threads(SELF) == max(1, len(os.sched_getaffinity(0)))
+
+
 def test_the_convex_tangent_after_the_exact_one_is_assembled_afresh_s():
     """The convex sparse tangent at the state of the exact one just formed
     (that one's values less the shell's compressed stitches' part) equals

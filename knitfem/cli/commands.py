@@ -295,7 +295,8 @@ def model_options(opts):
     (-knit_lod, -knit_volume; -knit_full_region(s))."""
     from knitfem.yarn.kernels import KINDS
     from knitfem.lod.mixed import region_options
-    from knitfem.lod.reduced import sampling_options, stretch_options, volume_options
+    from knitfem.lod.reduced import (sampling_options, stretch_options, threads_option,
+                                     volume_options)
 
     kind = opts.getChoice("model", "full", ("full", "reduced", "mixed"),
                           "mechanical model")
@@ -318,6 +319,7 @@ def model_options(opts):
                         f"crossings of its own; use -knit_model full")
     volume_options(opts)
     sampling_options(opts)
+    threads_option(opts)
     stretch_options(opts)
     region_options(opts)
     return ModelChoice(kind, nq, kernels, yarn_contact, contacts, margin)
@@ -571,12 +573,12 @@ def run(comm):
         friction_fits(fabric, static, PETSc.Options().getString("knit_integrator", ""))
         system = build_system(comm, opts, fabric, material)
         n, k = system.M.getSize()[0], system.C.getSize()[0]
-        from knitfem.lod.reduced import sampling_note
+        from knitfem.lod.reduced import sampling_note, threads_note
 
         PETSc.Sys.Print(f"knitfem run: {name}, {system.kind} model"
                         f"{sampling_note(system)}, {n} coordinates "
                         f"+ {k} constraints (contacts, fixed points) = {n + k} "
-                        f"unknowns, {comm.size} rank(s)")
+                        f"unknowns, {threads_note(system)}{comm.size} rank(s)")
         if static:
             return run_static(comm, system, scene, out, load_steps, StaticSolver)
         with PETSc.Log.Stage("Solver set-up"):

@@ -237,8 +237,8 @@ class ActiveContact:
         out += self.Ga.T @ g
 
     def add_hessian(self, alpha, T):
-        """T's values += Γ_Aᵀ ∇²(E_c + D) Γ_A (``T`` a ``SparseTangent`` or a
-        ``DenseValues``), as
+        """T's values += Γ_Aᵀ ∇²(E_c + D) Γ_A (``T`` a ``SparseTangent``, a
+        ``TangentPart`` or a ``DenseValues``), as
 
             Σ_q (c_q c_qᵀ) ⊗ H_q,   c_q = Σ_a B_qa Γ̃_{p_a},
 
@@ -246,11 +246,11 @@ class ActiveContact:
         (``Barrier.quadrature_hessian``; the others' H_q vanish) by
         ``QuadratureProduct``: the cost follows the contact region, not the
         set."""
-        if self.product is None or self.product.T is not T:
-            self.product = QuadratureProduct(T, self.G.cols, self.G.vals, self.el.B,
-                                             (self.columns, self.patch))
+        if self.product is None or self.product.T is not T.layout:
+            self.product = QuadratureProduct(T.layout, self.G.cols, self.G.vals,
+                                             self.el.B, (self.columns, self.patch))
         e, Hq = self.barrier.quadrature_hessian(self._x(alpha), self.near(alpha))
-        self.product.add(self.view.points_index[self.view.conn[e]], Hq)
+        self.product.add(self.view.points_index[self.view.conn[e]], Hq, T)
 
     def step_limit(self, alpha, dalpha):
         """``Barrier.step_limit`` on the set's points."""

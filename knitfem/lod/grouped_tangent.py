@@ -90,10 +90,11 @@ class GroupedTangent:
         return first[:-1].astype(np.int64), np.ascontiguousarray(pos, dtype=np.int64)
 
     def add_into(self, values, T):
-        """T's values (a ``SparseTangent``) += Γᵀ K Γ over this rank's yarns,
-        K given by its values; positions laid out at the first call for T."""
-        if self.placed is None or self.placed[0] is not T:
-            self.placed = (T, *self._positions(T))
+        """T's values (a ``SparseTangent`` or a ``TangentPart``) += Γᵀ K Γ over
+        this rank's yarns, K given by its values; positions laid out at the
+        first call for T's layout."""
+        if self.placed is None or self.placed[0] is not T.layout:
+            self.placed = (T.layout, *self._positions(T))
         indptr, neighbour, cols, vals, order, start, _, _, width, gmap = self.args
         self.module.reduce_tangent_into(values, indptr, neighbour, cols, vals, order,
                                         start, width, gmap, *self.placed[1:], T.values)

@@ -30,10 +30,12 @@ from knitfem.model.assembly import create_aij, kron_identity
 from knitfem.model.full import EV_FORCES, applied_forces, max_over_ranks
 from knitfem.errors import KnitError
 from knitfem.lod.grouped_tangent import GroupedTangent
+from knitfem.lod.parts import Parts, default_threads
 from knitfem.lod.volume import BoundingVolume
 from solvers.saddle import detect_null_pivots
 
-__all__ = ["Embedding", "ReducedModel", "embedding_from_options", "stretch_options"]
+__all__ = ["Embedding", "ReducedModel", "embedding_from_options", "stretch_options",
+           "threads_option"]
 
 EV_EMBED = PETSc.Log.Event("knitEmbedding")
 EV_PTAP = PETSc.Log.Event("knitPtAP")
@@ -119,6 +121,16 @@ def sampling_options(opts, default="sampled"):
     return kind, tol
 
 
+def threads_option(opts):
+    """-knit_threads: the threads a rank forms a sampled reduced model's
+    parts on (``parts.Parts``); 0, the default, for ``default_threads``."""
+    return opts.getInt("threads", 0, "threads on which a rank forms a sampled "
+                       "reduced model's parts (its sampled yarns, shell stretch "
+                       "and contact with bodies) side by side; 0: the cores the "
+                       "process may run on over the ranks on its machine",
+                       minimum=0)
+
+
 def stretch_options(opts, bodies=False):
     """How the reduced model measures its yarns' stretch, -knit_stretch
     yarn|shell (default: shell where there are bodies to bend round)."""
@@ -174,9 +186,17 @@ def reduced_from_options(opts, full, embedding):
     contact = ActiveContact(full, embedding) if full.barrier is not None else None
     model = ReducedModel(full, embedding,
                          SampledElements(full, embedding, elements, weights),
-                         shell=shell, contact=contact)
+                         shell=shell, contact=contact,
+                         threads=threads_option(opts) or default_threads(full.comm))
     model.sampling = dict(over_ranks(full.comm, report), kind=kind)
     return model
+
+
+def threads_note(system):
+    """The run header's words on the threads a rank forms the model's parts
+    on (``parts.Parts``; '' for one)."""
+    threads = getattr(getattr(system, "parts", None), "threads", 1)
+    return f"{threads} threads a rank, " if threads > 1 else ""
 
 
 def sampling_note(system):
@@ -380,9 +400,12 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
     def Gamma(self):
         return self.embedding.Gamma
 
-    def __init__(self, full, embedding, sampled=None, shell=None, contact=None):
+    def __init__(self, full, embedding, sampled=None, shell=None, contact=None,
+                 threads=1):
         self.embedding, self.sampled, self.shell = embedding, sampled, shell
         self.contact = contact
+        self.parts = Parts(threads)          # the sampled model's parts side by side
+        self.tangent_parts = None
         G = embedding.Gamma
         self._embed(full, G, embedding.Gamma_scalar, "reduced_MV_")
         self._world_constraints()
@@ -537,10 +560,9 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 E += self.comm.tompi4py().allreduce(self.shell.energy(self._all(q)))
             return E
         A = self._all(q)
-        E = self.sampled.energy(A)
-        for part in (self.shell, self.contact):
-            if part is not None:
-                E += part.energy(A)
+        E = sum(self.parts.map([lambda part=part: part.energy(A) for part in
+                                (self.sampled, self.shell, self.contact)
+                                if part is not None]))
         return self.comm.tompi4py().allreduce(E)
 
     def potential(self, q):
@@ -563,12 +585,20 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
             applied_forces(self, alphadot, Q)
             if self.sampled is not None:
                 A = self._all(alpha)
-                f = np.zeros((self.embedding.volume.size, 3))
-                self.sampled.add_forces(A, f)
+                shape = (self.embedding.volume.size, 3)
+
+                def part(add):
+                    f = np.zeros(shape)
+                    add(f)
+                    return f
+                jobs = [lambda: part(lambda f: self.sampled.add_forces(A, f))]
                 if self.shell is not None:
-                    self.shell.add_gradient(A, f, -1.0)
+                    jobs.append(lambda: part(lambda f: self.shell.add_gradient(A, f, -1.0)))
                 if self.contact is not None:
-                    self.contact.add_forces(A, f)
+                    jobs.append(lambda: part(lambda f: self.contact.add_forces(A, f)))
+                f, *rest = self.parts.map(jobs)
+                for g in rest:
+                    f += g
                 self._add_summed(f, Q)
                 return
             G.mult(alpha, self.eps)
@@ -655,16 +685,32 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
                 T.values[:] = kept[2]
                 self.shell.add_compressed(A, T, -1.0)
             else:
-                T.zero()
-                yarns(T)
-                if self.shell is not None:
-                    self.shell.add_tangent(A, T, convex)
-                if self.contact is not None:
-                    self.contact.add_hessian(A, T)
+                self._add_parts(T, A, yarns, convex)
                 self.exact_kept = (A.copy(), ref, T.values.copy()) \
                     if self.shell is not None and not convex else None
             self.K = T.assemble()
         return self.K
+
+    def _add_parts(self, T, A, yarns, convex):
+        """T's values = the yarn elements' part (``yarns(part)``), the
+        shell's and the contact set's, each formed into a ``TangentPart`` of
+        its own (side by side, ``parts``) and added in that order."""
+        from knitfem.lod.sparse_tangent import TangentPart
+
+        if self.tangent_parts is None or self.tangent_parts[0] is not T:
+            self.tangent_parts = (T, [TangentPart(T) for _ in range(3)])
+        Y, S, C = self.tangent_parts[1]
+        jobs = [(Y, lambda: yarns(Y))]
+        if self.shell is not None:
+            jobs.append((S, lambda: self.shell.add_tangent(A, S, convex)))
+        if self.contact is not None:
+            jobs.append((C, lambda: self.contact.add_hessian(A, C)))
+        for P, _ in jobs:
+            P.zero()
+        self.parts.map([job for _, job in jobs])
+        T.values[:] = Y.values
+        for P, _ in jobs[1:]:
+            T.values += P.values
 
     def _add_yarns(self, T, values):
         """T's values += the sampled elements' Γ_Sᵀ K_S Γ_S, K_S given by its
@@ -725,6 +771,7 @@ class ReducedModel(LinearConstraints, EmbeddedModel):
         if self.sparse is not None:
             self.sparse.destroy()
             self.K = None
+        self.parts.close()
         for A in (self.M, self.m, self.C, self.d, self.Qg, self.K, self.dq, self.deps,
                   self.eps_ref):
             if A is not None:

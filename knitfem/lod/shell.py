@@ -195,9 +195,10 @@ class ShellStretch:
         T.add_at(pos, np.repeat(self._patch_blocks(c), 3))     # ⊗ I₃: (P, k, k, 3)
 
     def _placed(self, T):
-        """``_placement`` for T, laid out at the first call for T."""
-        if self.placed is None or self.placed[0] is not T:
-            self.placed = (T, self._placement(T))
+        """``_placement`` for T, laid out at the first call for its layout
+        (a tangent's and its parts' positions are the same)."""
+        if self.placed is None or self.placed[0] is not T.layout:
+            self.placed = (T.layout, self._placement(T))
         return self.placed[1]
 
     def _placement(self, T):

@@ -30,7 +30,7 @@ from knitfem.model.assembly import create_aij
 from knitfem.yarn.kernels import compiled_module
 
 __all__ = ["DenseValues", "PatchProduct", "QuadratureProduct", "SparseTangent",
-           "patches", "scalar_pattern"]
+           "TangentPart", "patches", "scalar_pattern"]
 
 
 def patches(cols):
@@ -98,6 +98,12 @@ class SparseTangent:
     def nnz(self):
         return len(self.values)
 
+    @property
+    def layout(self):
+        """Whose positions these values are at: itself (a ``TangentPart``'s is
+        its tangent's), the key of the parts' laid-out positions."""
+        return self
+
     def zero(self):
         self.values[:] = 0.0
 
@@ -147,6 +153,32 @@ class SparseTangent:
         self.mat.destroy()
 
 
+class TangentPart:
+    """One part's share of a ``SparseTangent`` T: T's pattern and positions,
+    values of its own, so that parts formed side by side (``lod.parts``)
+    are added into T's afterwards in a fixed order."""
+
+    def __init__(self, T):
+        self.T, self.N, self.nnz, self.compiled = T, T.N, T.nnz, T.compiled
+        self.layout = T
+        self.values = np.zeros(T.nnz)
+
+    def zero(self):
+        self.values[:] = 0.0
+
+    def positions(self, rows, cols):
+        """T's ``positions``."""
+        return self.T.positions(rows, cols)
+
+    def add_at(self, pos, x):
+        """values[pos] += x, as T's ``add_at``."""
+        add_at(self.values, pos, x, self.compiled)
+
+    def add_dense(self, R):
+        """values += the pattern's entries of the dense ``R``, as T's."""
+        self.values += R.ravel()[self.T.keys]
+
+
 class DenseValues:
     """A dense N × N array ``R`` seen as a ``SparseTangent``'s values (every
     entry in the pattern, at position r N + c), so that the parts laid out
@@ -161,6 +193,7 @@ class DenseValues:
                              "are added in place through a flat view)")
         self.R, self.N = R, len(R)
         self.values = R.reshape(-1)              # a view: added in place
+        self.layout = self
 
     @property
     def nnz(self):
@@ -316,9 +349,11 @@ class QuadratureProduct:
         return np.stack([keys // n**3, keys // n**2 % n, keys // n % n, keys % n],
                         axis=1), group
 
-    def add(self, conn, H):
-        """T's values += Σ_q (c_q c_qᵀ) ⊗ H_q over the elements of control
-        points ``conn`` (m, 4) (rows of ``cols``) and H (m, nq, 3, 3)."""
+    def add(self, conn, H, out=None):
+        """``out``'s values (T's, or a ``TangentPart`` of T's) += Σ_q (c_q c_qᵀ)
+        ⊗ H_q over the elements of control points ``conn`` (m, 4) (rows of
+        ``cols``) and H (m, nq, 3, 3)."""
+        out = self.T if out is None else out
         if not len(conn):
             return
         groups, group = self._groups(conn)
@@ -334,13 +369,13 @@ class QuadratureProduct:
         ends = np.cumsum(9 * width**2)
         H6 = H.reshape(m, -1, 9)[:, :, UPPER]                         # H_q symmetric
         pos = self._placed(groups, columns, first, width)
-        if self.T.compiled:
+        if out.compiled:
             H6 = H6.reshape(-1, 6)
             live = np.flatnonzero(H6.any(axis=1))     # points outside the gap add 0
             rows = np.searchsorted(live, len(self.B) * bounds)
             compiled_module("knitfem.lod._rows", ROWS_VERSION).quadrature_product(
                 C.reshape(-1, w_max)[live], H6[live], rows, width.astype(np.int64),
-                ends - 9 * width**2, pos, self.T.values)
+                ends - 9 * width**2, pos, out.values)
             return
         val = np.empty(ends[-1])
         for g, (s, t) in enumerate(zip(bounds[:-1], bounds[1:])):
@@ -348,10 +383,10 @@ class QuadratureProduct:
             Cg = C[s:t, :, :w].reshape(-1, w)
             Z = (Cg[:, :, None] * H6[s:t].reshape(-1, 1, 6)).reshape(-1, 6 * w)
             V = (Cg.T @ Z).reshape(w, w, 6)                           # (k, l, i ≤ j)
-            out = val[ends[g] - 9 * w * w:ends[g]].reshape(w, w, 9)
-            out[:, :, :6] = V
-            out[:, :, 6:] = V[:, :, LOWER].transpose(1, 0, 2)
-        self.T.add_at(pos, val)
+            block = val[ends[g] - 9 * w * w:ends[g]].reshape(w, w, 9)
+            block[:, :, :6] = V
+            block[:, :, 6:] = V[:, :, LOWER].transpose(1, 0, 2)
+        out.add_at(pos, val)
 
     def _placed(self, groups, columns, first, width):
         """The positions of ``add``'s values for these groups, laid end to
