@@ -25,15 +25,18 @@ __all__ = ["Parts", "default_threads"]
 
 
 def default_threads(comm):
-    """The cores this process may run on (its affinity) over the ranks of
-    ``comm`` on its machine, at least 1 (collective)."""
+    """The cores this process may run on (its affinity; the machine's where
+    the system keeps none) over the ranks of ``comm`` on its machine, at
+    least 1 (collective)."""
     from mpi4py import MPI
 
     mpi = comm.tompi4py()
     local = mpi.Split_type(MPI.COMM_TYPE_SHARED)
     ranks = local.Get_size()
     local.Free()
-    return max(1, len(os.sched_getaffinity(0)) // ranks)
+    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+             else os.cpu_count() or 1)
+    return max(1, cores // ranks)
 
 
 class Parts:
