@@ -374,6 +374,43 @@ cdef void group_product(Py_ssize_t g, const double *values, const int64_t *indpt
         beta = 1.0
 
 
+cdef void all_groups(const double *values, const int64_t *indptr,
+                     const int64_t *neighbour, const int64_t *gcols, const double *gvals,
+                     int nw, const int64_t *order, const int64_t *start,
+                     const int64_t *width, const int32_t *gmap, int nvolume,
+                     Py_ssize_t ng, double *Y, double *G, double *B,
+                     double *R6, const int64_t *key, const int64_t *reach,
+                     Py_ssize_t maxw, const int64_t *first, const int64_t *pos,
+                     double *out, Py_ssize_t n) nogil:
+    """Every group's B (``group_product``) added where it goes: into R6
+    (nvolume × nvolume × 6) at [key, reach] where R6 is given
+    (``reduce_tangent``), else into out at ``pos`` from first[g]
+    (``reduce_tangent_into``, its docstring the layout)."""
+    cdef Py_ssize_t g, c, u
+    cdef int w, m, ij
+    cdef int64_t at, p
+    cdef int lower[3]
+    lower[0] = 1
+    lower[1] = 2
+    lower[2] = 4
+    for g in range(ng):
+        w = <int>width[g]
+        m = 6 * w
+        group_product(g, values, indptr, neighbour, gcols, gvals, nw, order, start,
+                      gmap, nvolume, w, Y, G, B)
+        for c in range(nw):
+            for u in range(w):
+                if R6 != NULL:
+                    at = 6 * (key[g * nw + c] * nvolume + reach[g * maxw + u])
+                    for ij in range(6):
+                        R6[at + ij] += B[c * m + 6 * u + ij]
+                    continue
+                at = first[g] + 9 * (c * w + u)
+                for ij in range(9):
+                    p = pos[at + ij]
+                    if p < n:
+                        out[p] += B[c * m + 6 * u + (ij if ij < 6 else lower[ij - 6])]
+
 def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
                    const int64_t[::1] neighbour, const int64_t[:, ::1] gcols,
                    const double[:, ::1] gvals, const int64_t[::1] order,
@@ -398,8 +435,7 @@ def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
     """
     cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1]
     cdef Py_ssize_t nv = out.shape[0] // 3, maxw = reach.shape[1]
-    cdef Py_ssize_t g, c, d, u
-    cdef int w, m
+    cdef Py_ssize_t c, d
     cdef double[:, :, ::1] R6 = cvarray((nv, nv, 6), sizeof(double), "d")
     cdef double[::1] Y = cvarray((CHUNK * 6 * maxw,), sizeof(double), "d")
     cdef double[::1] G = cvarray((CHUNK * nw,), sizeof(double), "d")
@@ -411,16 +447,10 @@ def reduce_tangent(const double[::1] values, const int64_t[::1] indptr,
     pair_j[:] = [0, 1, 2, 1, 2, 2]
     with nogil:
         memset(&R6[0, 0, 0], 0, nv * nv * 6 * sizeof(double))
-        for g in range(ng):
-            w = <int>width[g]
-            m = 6 * w
-            group_product(g, &values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
-                          &gvals[0, 0], <int>nw, &order[0], &start[0], &gmap[0, 0],
-                          <int>gmap.shape[1], w, &Y[0], &G[0], &B[0])
-            for c in range(nw):
-                for u in range(w):
-                    for ij in range(6):
-                        R6[key[g, c], reach[g, u], ij] += B[c * m + 6 * u + ij]
+        all_groups(&values[0], &indptr[0], &neighbour[0], &gcols[0, 0], &gvals[0, 0],
+                   <int>nw, &order[0], &start[0], &width[0], &gmap[0, 0],
+                   <int>gmap.shape[1], ng, &Y[0], &G[0], &B[0], &R6[0, 0, 0],
+                   &key[0, 0], &reach[0, 0], maxw, NULL, NULL, NULL, 0)
         for c in range(nv):
             for d in range(nv):
                 for ij in range(6):
@@ -440,32 +470,16 @@ def reduce_tangent_into(const double[::1] values, const int64_t[::1] indptr,
     place (3c + i, 3d + j) for the pair ij, and s = 6, 7, 8 the transposed
     place (3d + j, 3c + i) of the pairs i < j (0,1), (0,2), (1,2); positions
     at or past len(out) are dropped."""
-    cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1]
-    cdef Py_ssize_t n = out.shape[0], maxw = 0
-    cdef Py_ssize_t g, c, u
-    cdef int w, m
-    cdef int64_t at, p
-    cdef double v
-    cdef int ij
-    cdef int lower[3]
-    lower[:] = [1, 2, 4]
+    cdef Py_ssize_t ng = start.shape[0] - 1, nw = gcols.shape[1], maxw = 1, g
     for g in range(ng):
         maxw = max(maxw, width[g])
-    cdef double[::1] Y = cvarray((CHUNK * 6 * max(maxw, 1),), sizeof(double), "d")
+    cdef double[::1] Y = cvarray((CHUNK * 6 * maxw,), sizeof(double), "d")
     cdef double[::1] G = cvarray((CHUNK * nw,), sizeof(double), "d")
-    cdef double[::1] B = cvarray((nw * 6 * max(maxw, 1),), sizeof(double), "d")
+    cdef double[::1] B = cvarray((nw * 6 * maxw,), sizeof(double), "d")
+    if ng == 0:
+        return
     with nogil:
-        for g in range(ng):
-            w = <int>width[g]
-            m = 6 * w
-            group_product(g, &values[0], &indptr[0], &neighbour[0], &gcols[0, 0],
-                          &gvals[0, 0], <int>nw, &order[0], &start[0], &gmap[0, 0],
-                          <int>gmap.shape[1], w, &Y[0], &G[0], &B[0])
-            for c in range(nw):
-                for u in range(w):
-                    at = first[g] + 9 * (c * w + u)
-                    for ij in range(9):
-                        v = B[c * m + 6 * u + (ij if ij < 6 else lower[ij - 6])]
-                        p = pos[at + ij]
-                        if p < n:
-                            out[p] += v
+        all_groups(&values[0], &indptr[0], &neighbour[0], &gcols[0, 0], &gvals[0, 0],
+                   <int>nw, &order[0], &start[0], &width[0], &gmap[0, 0],
+                   <int>gmap.shape[1], ng, &Y[0], &G[0], &B[0], NULL, NULL, NULL,
+                   0, &first[0], &pos[0], &out[0], out.shape[0])
